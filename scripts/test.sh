@@ -1,0 +1,10 @@
+#!/usr/bin/env bash
+# Set up (idempotent) and run the whole test suite. `.ci/run` calls exactly this.
+set -euo pipefail
+here="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+bash "$here/scripts/setup.sh"
+cd "$here"
+# DDS isolation for the tests that start ROS 2 nodes (see test/conftest.py for per-test domain ids).
+export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
+export PYOPENGL_PLATFORM="${PYOPENGL_PLATFORM:-osmesa}"
+exec .venv/bin/python -m pytest test -q "$@"

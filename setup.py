@@ -1,0 +1,58 @@
+"""ament_python package uw_sil: builds with colcon in a ROS 2 workspace and installs with pip."""
+from glob import glob
+
+from setuptools import find_packages, setup
+
+package_name = "uw_sil"
+
+setup(
+    name=package_name,
+    version="0.1.0",
+    packages=find_packages(exclude=["test", "test.*", "bench"]),
+    package_data={"uw_sil": ["models/*.glb"]},
+    data_files=[
+        ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
+        ("share/" + package_name, ["package.xml"]),
+        ("share/" + package_name + "/launch", glob("launch/*.launch.py")),
+        ("share/" + package_name + "/config", glob("config/*.yaml") + glob("config/*.xml")),
+        ("share/" + package_name + "/models", glob("uw_sil/models/*.glb")),
+    ],
+    python_requires=">=3.10",
+    install_requires=[
+        "numpy>=1.24",
+        "scipy>=1.10",
+        # OpenCV 5 moved KAZE/AKAZE to cv2.xfeatures2d; the 4.x line keeps them in cv2.
+        "opencv-contrib-python-headless>=4.8,<5",
+        "trimesh>=4.0",
+        "pyrender2==0.2.2",
+        "PyOpenGL>=3.1.5",
+        "pyswarm==1.1.2",
+        "cma>=3.3",
+        "rosbags>=0.10",
+        "mcap>=1.1",
+        "matplotlib>=3.7",
+        "PyYAML>=6.0",
+        "tqdm>=4.60",
+    ],
+    extras_require={
+        # ROS 2 Kilted from PyPI wheels; inside a sourced ROS 2 workspace these come from /opt/ros.
+        "ros": [
+            "ros-kilted-rclpy[fastrtps]",
+            "ros-kilted-sensor-msgs",
+            "ros-kilted-geometry-msgs",
+            "ros-kilted-std-srvs",
+            "ros-kilted-rcl-interfaces",
+        ],
+        "test": ["pytest>=7"],
+    },
+    zip_safe=True,
+    maintainer="uw_sil developers",
+    maintainer_email="uw-sil@example.org",
+    description="Underwater camera simulation fitted to real ROV imagery (sim-to-real for subsea perception).",
+    license="Apache-2.0",
+    entry_points={
+        "console_scripts": [
+            "uw-sil = uw_sil.cli:main",
+        ],
+    },
+)

@@ -1,0 +1,67 @@
+"""Figures a person looks at: contact sheets of frames, renders, depth and masks (matplotlib, Agg)."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["contact_sheet", "save_figure", "depth_image"]
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def save_figure(fig, path, dpi: int = 110) -> Path:
+    """Save atomically (temp file + rename) and close the figure."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}{path.suffix}")
+    fig.savefig(tmp, dpi=dpi, bbox_inches="tight")
+    os.replace(tmp, path)
+    _plt().close(fig)
+    return path
+
+
+def depth_image(depth: np.ndarray) -> np.ma.MaskedArray:
+    """Depth with no-hit pixels masked, for ``imshow`` with a colour bar."""
+    d = np.asarray(depth, dtype=float)
+    return np.ma.masked_invalid(np.where(np.isfinite(d), d, np.nan))
+
+
+def contact_sheet(rows, title: str = ""):
+    """A grid: one row per frame with the recorded (real-like) image, clean render, depth and label mask.
+
+    Parameters
+    ----------
+    rows : iterable of (label, image_uint8, render)
+        ``render`` has ``rgb``, ``depth`` and ``labels`` (a :class:`uw_sil.render.RenderResult`).
+    """
+    plt = _plt()
+    rows = list(rows)
+    if not rows:
+        raise ValueError("contact sheet needs at least one frame")
+    fig, axes = plt.subplots(len(rows), 4, figsize=(13, 2.6 * len(rows)), squeeze=False)
+    for ax_row, (label, img, rr) in zip(axes, rows):
+        ax_row[0].imshow(img)
+        ax_row[0].set_title(f"recorded {label}", fontsize=9)
+        ax_row[1].imshow(np.clip(rr.rgb, 0, 1))
+        ax_row[1].set_title("clean render", fontsize=9)
+        im = ax_row[2].imshow(depth_image(rr.depth), cmap="viridis")
+        ax_row[2].set_title("depth z [m]", fontsize=9)
+        fig.colorbar(im, ax=ax_row[2], fraction=0.035, pad=0.02)
+        ax_row[3].imshow(rr.labels, cmap="tab10", vmin=0, vmax=9, interpolation="nearest")
+        ax_row[3].set_title("labels (0 water, 1 panel, 2 seafloor)", fontsize=9)
+        for ax in ax_row:
+            ax.set_xticks([])
+            ax.set_yticks([])
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    return fig
