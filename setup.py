@@ -28,8 +28,11 @@ setup(
         "PyOpenGL>=3.1.5",
         "pyswarm==1.1.2",
         "cma>=3.3",
-        "rosbags>=0.10",
+        "rosbags>=0.11.9",  # Stores.ROS2_KILTED, rosbag2 metadata version 9
         "mcap>=1.1",
+        # uw_sil.mcap_recover decompresses cut MCAP chunks itself (both also come with mcap).
+        "zstandard>=0.20",
+        "lz4>=4.0",
         "matplotlib>=3.7",
         "PyYAML>=6.0",
         "tqdm>=4.60",

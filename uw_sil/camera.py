@@ -58,6 +58,26 @@ class CameraModel:
         k = np.asarray(k, dtype=float).reshape(3, 3)
         return cls(int(width), int(height), float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2]), frame_id)
 
+    @classmethod
+    def from_camera_info(cls, msg) -> "CameraModel":
+        """From any object with the fields of ``sensor_msgs/CameraInfo`` (rclpy or rosbags message).
+
+        The model is an undistorted pinhole: distortion coefficients ``d`` are not used (callers warn).
+        """
+        k = np.asarray(msg.k, dtype=float)
+        if k.size != 9 or not np.isfinite(k).all() or k[0] <= 0 or k[4] <= 0:
+            raise ValueError(f"camera_info has an invalid K matrix {list(k)} (uncalibrated camera?)")
+        frame = str(getattr(getattr(msg, "header", None), "frame_id", "") or "camera_optical_frame")
+        return cls.from_k(int(msg.width), int(msg.height), k, frame)
+
+    def camera_info_fields(self) -> dict:
+        """Fields of a ``sensor_msgs/CameraInfo`` for this camera (without header)."""
+        return {
+            "height": int(self.height), "width": int(self.width), "distortion_model": "plumb_bob",
+            "d": [0.0] * 5, "k": [float(v) for v in self.K.ravel()],
+            "r": [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0], "p": [float(v) for v in self.P.ravel()],
+        }
+
     @property
     def K(self) -> np.ndarray:
         """3x3 intrinsic matrix."""

@@ -1,0 +1,997 @@
+"""ROS 2 bags of field trials: write synthetic trials, read (image, camera_info, pose) samples.
+
+Layout written by :func:`write_trial` (what ``ros2 bag record`` makes: a rosbag2 directory)::
+
+    write_trial("trial.mcap", ...)   ->  trial/metadata.yaml + trial/trial.mcap
+    write_trial("trial.db3", ...)    ->  trial/metadata.yaml + trial/trial.db3
+    write_trial("trial", ...)        ->  trial/metadata.yaml + trial/trial.mcap   (storage="mcap")
+
+so ``uw-sil synth --out trial.mcap`` gives a bag that ``ros2 bag play trial`` and ``ros2 bag info
+trial`` accept (and, since Iron, ``ros2 bag play trial/trial.mcap``); the suffix of ``--out`` only
+picks the storage. Readers here accept a bag directory, its ``metadata.yaml``, or a bare ``.mcap`` /
+``.db3`` file, and a bag directory without ``metadata.yaml`` (the recorder died before writing it).
+
+Messages are (de)serialized with ``rosbags`` in CDR, rclpy's wire format, with the message
+definitions of ROS 2 Kilted for writing and the bag's own definitions for reading.
+
+Cut-off MCAP files (recorder lost power) are read by :mod:`uw_sil.mcap_recover`, which yields every
+complete message; the loss is reported in a :class:`ReadReport` (``.report`` of the iterators
+returned here) and logged as a warning. A damaged sqlite3 file is read best-effort: messages are
+returned until SQLite reports the damage, which is then recorded in the report (SQLite returns
+messages in time order, so what is lost is not necessarily only the end).
+"""
+from __future__ import annotations
+
+import logging
+import math
+import re
+import shutil
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterable, Iterator, NamedTuple
+
+import numpy as np
+import yaml
+
+from .camera import CameraModel
+from .imgmsg import compressed_to_rgb, image_to_rgb
+from .mcap_recover import McapFormatError, McapScanReport, iter_mcap, read_mcap_summary
+from .stamps import StampSynchronizer, SyncStats
+from .transforms import matrix_to_pose, pose_to_matrix
+
+__all__ = [
+    "Sample", "BagError", "TopicInfo", "ReadReport", "BagInfo", "RawMessage", "write_trial", "open_bag",
+    "iter_raw", "iter_messages", "read_samples", "resolve_bag_path", "IMAGE_TYPE", "COMPRESSED_IMAGE_TYPE",
+    "CAMERA_INFO_TYPE", "POSE_TYPE", "TF_TYPE",
+]
+
+log = logging.getLogger(__name__)
+
+IMAGE_TYPE = "sensor_msgs/msg/Image"
+COMPRESSED_IMAGE_TYPE = "sensor_msgs/msg/CompressedImage"
+CAMERA_INFO_TYPE = "sensor_msgs/msg/CameraInfo"
+POSE_TYPE = "geometry_msgs/msg/PoseStamped"
+TF_TYPE = "tf2_msgs/msg/TFMessage"
+
+_STORAGE_SUFFIX = {"mcap": ".mcap", "sqlite3": ".db3"}
+_SQLITE_MAGIC = b"SQLite format 3\x00"
+_MCAP_MAGIC = b"\x89MCAP0\r\n"
+_ROSBAG2_VERSION = 9  # metadata.yaml version of Jazzy / Kilted
+
+
+class BagError(ValueError):
+    """A bag cannot be read or written as asked (not a bag, missing topic, bad message...)."""
+
+
+@dataclass
+class Sample:
+    """One time-synchronized camera frame of a trial.
+
+    Attributes
+    ----------
+    stamp_ns : int
+        Header stamp of the image, nanoseconds.
+    image : ndarray
+        (H, W, 3) uint8, RGB.
+    camera : CameraModel
+        Intrinsics from the paired ``camera_info``.
+    pose : ndarray
+        4x4 float64 ``T_cam_panel``: the panel frame expressed in the camera optical frame.
+    frame_id : str
+        The camera optical frame (image ``header.frame_id``).
+    """
+
+    stamp_ns: int
+    image: np.ndarray
+    camera: CameraModel
+    pose: np.ndarray
+    frame_id: str = "camera_optical_frame"
+
+
+@dataclass(frozen=True)
+class TopicInfo:
+    """A topic of a bag: name, message type and number of messages (``None`` if unknown)."""
+
+    name: str
+    msgtype: str
+    count: int | None
+
+
+@dataclass
+class ReadReport:
+    """What reading a bag found, including what was lost in a cut-off recording.
+
+    Attributes
+    ----------
+    path : str
+        The bag (directory or file).
+    storage : str
+        ``"mcap"`` or ``"sqlite3"``.
+    files : list of str
+        Storage files read.
+    metadata_missing : bool
+        A bag directory without ``metadata.yaml`` (typical of a recorder that died).
+    truncated : bool
+        Some file was cut off or damaged: messages may be missing.
+    bytes_total, bytes_unreadable : int
+        Size of the MCAP files, and how much of it could not be read (0 for sqlite3).
+    expected : dict
+        Messages per topic according to the bag's own bookkeeping (``metadata.yaml``, else the MCAP
+        summary, else the sqlite3 tables); topics without a count are absent.
+    read : dict
+        Complete messages read per topic (for sqlite3, only the topics asked for).
+    requested : list of str or None
+        Topics read (``None``: all).
+    errors : list of str
+        Problems found, with file offsets where relevant.
+    warnings : list of str
+        Things that are readable but suspicious (e.g. camera_info with distortion).
+    sync : SyncStats or None
+        Pairing counters of :func:`read_samples` (images read, matched, dropped and why).
+    samples : int
+        Samples yielded by :func:`read_samples`.
+    finished : bool
+        The whole bag was read (the numbers are final).
+    """
+
+    path: str
+    storage: str
+    files: list = field(default_factory=list)
+    metadata_missing: bool = False
+    truncated: bool = False
+    bytes_total: int = 0
+    bytes_unreadable: int = 0
+    expected: dict = field(default_factory=dict)
+    read: dict = field(default_factory=dict)
+    requested: list | None = None
+    errors: list = field(default_factory=list)
+    warnings: list = field(default_factory=list)
+    sync: SyncStats | None = None
+    samples: int = 0
+    finished: bool = False
+
+    @property
+    def lost(self) -> dict:
+        """Messages missing per topic (expected minus read), for topics read and with a known count."""
+        topics = self.expected if self.requested is None else [t for t in self.requested if t in self.expected]
+        out = {}
+        for t in topics:
+            n = self.expected[t] - self.read.get(t, 0)
+            if n > 0:
+                out[t] = n
+        return out
+
+    def summary(self) -> str:
+        """A few human-readable lines."""
+        lines = [f"{self.path} ({self.storage}, {len(self.files)} file(s))"]
+        if self.metadata_missing:
+            lines.append("  metadata.yaml missing: storage files read directly (as `ros2 bag reindex` would)")
+        if self.truncated and self.storage == "mcap":
+            lines.append(f"  TRUNCATED/DAMAGED: {self.bytes_unreadable} of {self.bytes_total} bytes unreadable")
+        elif self.truncated:
+            lines.append("  DAMAGED: read until SQLite reported the damage")
+        shown = set(self.read) | set(self.expected) if self.requested is None else self.requested
+        for t in sorted(shown):
+            exp = self.expected.get(t)
+            lines.append(f"  {t}: read {self.read.get(t, 0)}" + ("" if exp is None else f" of {exp}"))
+        if self.lost:
+            lines.append(f"  lost: {self.lost}")
+        if self.sync is not None:
+            s = self.sync
+            lines.append(f"  samples: {self.samples} from {s.received[0]} images ({s.exact} exact stamp matches, "
+                         f"{s.dropped} images without partner, {s.forced} decided early)")
+        lines += [f"  error: {e}" for e in self.errors] + [f"  warning: {w}" for w in self.warnings]
+        return "\n".join(lines)
+
+
+@dataclass
+class BagInfo:
+    """Contents of a bag, like ``ros2 bag info``.
+
+    ``topics`` maps topic name to :class:`TopicInfo`; times are nanoseconds (bag receive times);
+    ``report`` tells whether the bag is cut off or damaged and what was lost.
+    """
+
+    path: Path
+    storage: str
+    files: list
+    topics: dict
+    start_ns: int | None
+    end_ns: int | None
+    report: ReadReport
+
+    @property
+    def message_count(self) -> int:
+        return sum(t.count or 0 for t in self.topics.values())
+
+    @property
+    def duration_s(self) -> float:
+        if self.start_ns is None or self.end_ns is None:
+            return 0.0
+        return (self.end_ns - self.start_ns) / 1e9
+
+    def __str__(self) -> str:
+        lines = [f"bag: {self.path}", f"storage: {self.storage} ({', '.join(Path(f).name for f in self.files)})",
+                 f"duration: {self.duration_s:.3f} s", f"messages: {self.message_count}"]
+        for t in sorted(self.topics.values(), key=lambda x: x.name):
+            lines.append(f"  {t.name} [{t.msgtype}] {t.count if t.count is not None else '?'}")
+        if self.report.truncated or self.report.metadata_missing:
+            lines.append(self.report.summary())
+        return "\n".join(lines)
+
+
+class RawMessage(NamedTuple):
+    """A serialized message as stored: topic, type, bag receive time (ns) and CDR bytes."""
+
+    topic: str
+    msgtype: str
+    log_time_ns: int
+    data: bytes | memoryview
+
+
+# --------------------------------------------------------------------------------------------------
+# Locating bag files
+
+
+@dataclass
+class _Layout:
+    root: Path
+    storage: str
+    files: list
+    metadata: dict | None
+
+
+def _split_index(p: Path):
+    m = re.search(r"_(\d+)$", p.stem)
+    return (p.stem[: m.start()] if m else p.stem, int(m.group(1)) if m else -1, p.name)
+
+
+def _sniff(p: Path) -> str | None:
+    with p.open("rb") as f:
+        head = f.read(16)
+    if head.startswith(_MCAP_MAGIC):
+        return "mcap"
+    if head == _SQLITE_MAGIC:
+        return "sqlite3"
+    return None
+
+
+def resolve_bag_path(path) -> Path:
+    """The bag a path refers to: a bag directory, or a bare ``.mcap``/``.db3`` file.
+
+    ``metadata.yaml`` itself resolves to its directory. ``trial.mcap`` (or ``trial.db3``) that does not
+    exist as such but is the storage file of a bag directory ``trial/`` -- exactly what
+    ``write_trial("trial.mcap")`` and ``uw-sil synth --out trial.mcap`` make -- resolves to ``trial/``,
+    so the name given when writing also works when reading.
+    """
+    p = Path(path)
+    if p.name == "metadata.yaml" and p.is_file():
+        return p.parent
+    if not p.exists():
+        d = p.with_suffix("")
+        if p.suffix in (".mcap", ".db3") and (d / p.name).is_file():
+            return d
+        raise FileNotFoundError(f"bag {p} does not exist")
+    return p
+
+
+def _layout(path) -> _Layout:
+    p = resolve_bag_path(path)
+    if p.is_dir():
+        meta_path = p / "metadata.yaml"
+        if meta_path.exists():
+            try:
+                doc = yaml.safe_load(meta_path.read_text())
+                meta = doc["rosbag2_bagfile_information"]
+                storage = meta["storage_identifier"]
+                rel = list(meta["relative_file_paths"])
+            except (yaml.YAMLError, OSError, KeyError, TypeError) as exc:
+                raise BagError(f"{meta_path} is not a readable rosbag2 metadata file: {exc!r}") from None
+            if storage not in _STORAGE_SUFFIX:
+                raise BagError(f"{p}: storage {storage!r} is not supported (supported: mcap, sqlite3)")
+            files = [p / Path(x).name for x in rel]
+            missing = [str(f) for f in files if not f.exists()]
+            if missing:
+                raise BagError(f"{p}: metadata.yaml lists storage files that do not exist: {missing}")
+            if storage == "mcap" and (meta.get("compression_mode") or "").lower() not in ("", "none"):
+                raise BagError(f"{p}: rosbag2-level {meta.get('compression_format')} compression "
+                               f"({meta.get('compression_mode')} mode) of MCAP bags is not supported; run "
+                               f"`ros2 bag convert` first (MCAP's own chunk compression is supported)")
+            return _Layout(p, storage, files, meta)
+        found = {s: sorted((f for f in p.iterdir() if f.suffix == suf and f.is_file()), key=_split_index)
+                 for s, suf in _STORAGE_SUFFIX.items()}
+        kinds = [s for s, fs in found.items() if fs]
+        if not kinds:
+            raise BagError(f"{p} is not a ROS 2 bag: no metadata.yaml and no .mcap or .db3 file in it")
+        if len(kinds) > 1:
+            raise BagError(f"{p} has no metadata.yaml and holds both .mcap and .db3 files: pass one file")
+        log.warning("%s has no metadata.yaml (recording not closed?): reading its %s file(s) directly", p,
+                    kinds[0])
+        return _Layout(p, kinds[0], found[kinds[0]], None)
+    kind = _sniff(p)
+    if kind is None:
+        size = p.stat().st_size
+        what = "an empty file" if size == 0 else "neither an MCAP nor an SQLite file"
+        raise BagError(f"{p} is not a ROS 2 bag: {what} (expected a bag directory, a .mcap or a .db3 file)")
+    return _Layout(p, kind, [p], None)
+
+
+def _metadata_counts(meta: dict | None) -> tuple[dict, dict]:
+    """(topic -> type, topic -> count) from metadata.yaml."""
+    types, counts = {}, {}
+    for entry in (meta or {}).get("topics_with_message_count") or []:
+        tm = entry.get("topic_metadata", {})
+        if "name" in tm:
+            types[tm["name"]] = tm.get("type", "")
+            if "message_count" in entry:
+                counts[tm["name"]] = int(entry["message_count"])
+    return types, counts
+
+
+# --------------------------------------------------------------------------------------------------
+# Types
+
+
+class _Types:
+    """Deserializer using the bag's own message definitions, else ROS 2 Kilted's."""
+
+    def __init__(self):
+        from rosbags.typesys import Stores, get_typestore
+
+        self._default = get_typestore(Stores.ROS2_KILTED)
+        self._bag = get_typestore(Stores.EMPTY)
+        self._seen: set = set()
+
+    def add(self, msgtype: str, encoding: str, definition) -> None:
+        key = (msgtype, encoding)
+        if not definition or key in self._seen or msgtype in self._bag.types:
+            return
+        from rosbags.typesys import get_types_from_idl, get_types_from_msg
+
+        text = definition.decode() if isinstance(definition, (bytes, bytearray)) else str(definition)
+        try:
+            if encoding == "ros2msg":
+                typs = get_types_from_msg(text, msgtype)
+            elif encoding == "ros2idl":
+                typs = {}
+                sep = "=" * 80 + "\n"
+                if text.startswith(sep + "IDL: "):  # several IDL files, each after a "IDL: name" line
+                    for part in text.split(sep)[1:]:
+                        typs.update(get_types_from_idl(part.split("\n", 1)[1]))
+                else:
+                    typs.update(get_types_from_idl(text))
+            else:
+                raise BagError(f"unknown message definition encoding {encoding!r} for {msgtype}")
+            self._bag.register(typs)
+        except BagError:
+            raise
+        except Exception as exc:
+            raise BagError(f"cannot use the bag's definition of {msgtype}: {exc}") from None
+        self._seen.add(key)
+
+    def deserialize(self, data, msgtype: str):
+        store = self._bag if msgtype in self._bag.types else self._default
+        if msgtype not in store.types:
+            raise BagError(f"no definition of message type {msgtype!r}: not in the bag and not a ROS 2 Kilted type")
+        try:
+            return store.deserialize_cdr(data, msgtype)
+        except Exception as exc:
+            raise BagError(f"cannot deserialize a {msgtype} message ({len(data)} bytes): {exc}") from None
+
+
+# --------------------------------------------------------------------------------------------------
+# Reading raw messages
+
+
+def _merge_mcap(report: ReadReport, r: McapScanReport) -> None:
+    for t, n in r.messages.items():
+        report.read[t] = report.read.get(t, 0) + n
+    report.bytes_unreadable += r.bytes_unreadable
+    if r.truncated or r.skipped_chunks:
+        report.truncated = True
+    report.errors += [f"{Path(r.path).name}: {e}" for e in r.errors]
+
+
+def _raw_stream(layout: _Layout, topics, report: ReadReport, types: _Types | None):
+    """Yield (topic, msgtype, log_time, data) and keep ``report`` up to date."""
+    want = None if topics is None else set(topics)
+    if layout.storage == "mcap":
+        for f in layout.files:
+            r = McapScanReport(str(f))
+            try:
+                for m in iter_mcap(f, want, r):
+                    ch = m.channel
+                    if not ch.msgtype:
+                        raise BagError(f"{f}: topic {ch.topic} has no schema (message type unknown)")
+                    if ch.message_encoding != "cdr":
+                        raise BagError(f"{ch.topic}: message encoding {ch.message_encoding!r} is not ROS 2 CDR")
+                    if types is not None:
+                        types.add(ch.msgtype, ch.schema_encoding, ch.schema_data)
+                    yield ch.topic, ch.msgtype, m.log_time, m.data
+            except McapFormatError as exc:
+                raise BagError(str(exc)) from None
+            _merge_mcap(report, r)
+            if r.truncated:
+                log.warning("%s is cut off or damaged: read %d complete messages, %d of %d bytes unreadable (%s)",
+                            f, sum(r.messages.values()), r.bytes_unreadable, r.size, "; ".join(r.errors))
+        return
+    from rosbags.rosbag2 import Reader
+    from rosbags.rosbag2.errors import ReaderError
+    from rosbags.rosbag2.storage_sqlite3 import Sqlite3Reader
+
+    from rosbags.interfaces import MessageDefinitionFormat
+
+    units = [Reader(layout.root)] if layout.metadata is not None else [Sqlite3Reader(f) for f in layout.files]
+    for unit in units:
+        try:
+            unit.open()
+        except (ReaderError, *_sqlite_errors()) as exc:
+            raise BagError(_sqlite_open_error(layout.root, exc)) from None
+        try:
+            conns = [c for c in unit.connections if want is None or c.topic in want]
+            if types is not None:
+                for c in conns:
+                    enc = {MessageDefinitionFormat.MSG: "ros2msg", MessageDefinitionFormat.IDL: "ros2idl"}.get(
+                        c.msgdef.format)
+                    if enc:
+                        types.add(c.msgtype, enc, c.msgdef.data)
+            if conns:
+                try:
+                    for c, t, data in unit.messages(conns):
+                        report.read[c.topic] = report.read.get(c.topic, 0) + 1
+                        yield c.topic, c.msgtype, t, data
+                except _sqlite_errors() as exc:
+                    report.truncated = True
+                    report.errors.append(f"sqlite3 error after {sum(report.read.values())} messages: {exc}")
+                    log.warning("%s is damaged: %s; read %d messages", layout.root, exc, sum(report.read.values()))
+        finally:
+            unit.close()
+
+
+def _sqlite_errors() -> tuple:
+    """Exceptions SQLite raises through rosbags (it uses apsw, and may use the standard module)."""
+    import sqlite3
+
+    try:
+        import apsw
+    except ImportError:  # a rosbags without apsw uses the standard sqlite3 module only
+        return (sqlite3.Error,)
+    return (sqlite3.Error, apsw.Error)
+
+
+def _sqlite_open_error(root: Path, exc: Exception) -> str:
+    return (f"cannot open sqlite3 bag {root}: {exc} (a damaged or cut-off sqlite3 file cannot be read here; "
+            f"SQLite's own `sqlite3 in.db3 .recover | sqlite3 out.db3` may salvage it)")
+
+
+def _new_report(layout: _Layout) -> ReadReport:
+    rep = ReadReport(str(layout.root), layout.storage, [str(f) for f in layout.files],
+                     metadata_missing=layout.root.is_dir() and layout.metadata is None)
+    if layout.storage == "mcap":
+        rep.bytes_total = sum(f.stat().st_size for f in layout.files)
+    return rep
+
+
+def open_bag(path) -> BagInfo:
+    """Topics, types, counts and time span of a bag, and whether it is cut off.
+
+    Parameters
+    ----------
+    path : str or Path
+        Bag directory, its ``metadata.yaml``, or a bare ``.mcap`` / ``.db3`` file.
+
+    Returns
+    -------
+    BagInfo
+
+    Raises
+    ------
+    FileNotFoundError
+        ``path`` does not exist.
+    BagError
+        Not a ROS 2 bag (empty, other format, unreadable metadata, missing storage files).
+
+    Notes
+    -----
+    A properly closed MCAP file is summarized from its summary section; a cut-off one is scanned
+    entirely (without deserializing), so the counts are those of the complete messages.
+    """
+    return _open_layout(_layout(path))
+
+
+def _open_layout(layout: _Layout) -> BagInfo:
+    rep = _new_report(layout)
+    meta_types, meta_counts = _metadata_counts(layout.metadata)
+    types: dict[str, str] = {}
+    counts: dict[str, int] = {}
+    start = end = None
+    if layout.storage == "mcap":
+        stats_counts: dict[str, int] = {}
+        stats_complete = True
+        for f in layout.files:
+            try:
+                summ = read_mcap_summary(f)
+            except OSError as exc:
+                raise BagError(f"cannot read {f}: {exc}") from None
+            if summ is not None:
+                for t, ch in summ.channels.items():
+                    types[t] = ch.msgtype
+                for t, n in summ.counts.items():
+                    counts[t] = counts.get(t, 0) + n
+                    stats_counts[t] = stats_counts.get(t, 0) + n
+                    rep.read[t] = rep.read.get(t, 0) + n
+                if any(summ.counts.values()):
+                    start = summ.start_ns if start is None else min(start, summ.start_ns)
+                    end = summ.end_ns if end is None else max(end, summ.end_ns)
+                continue
+            stats_complete = False
+            r = McapScanReport(str(f))
+            t_min = t_max = None
+            try:
+                for m in iter_mcap(f, None, r):
+                    t_min = m.log_time if t_min is None else min(t_min, m.log_time)
+                    t_max = m.log_time if t_max is None else max(t_max, m.log_time)
+            except McapFormatError as exc:
+                raise BagError(str(exc)) from None
+            _merge_mcap(rep, r)
+            for t, n in r.messages.items():
+                counts[t] = counts.get(t, 0) + n
+            for t, mt in r.topics.items():
+                types[t] = mt
+            if t_min is not None:
+                start = t_min if start is None else min(start, t_min)
+                end = t_max if end is None else max(end, t_max)
+        rep.expected = dict(meta_counts) if layout.metadata is not None else (stats_counts if stats_complete else {})
+    else:
+        from rosbags.rosbag2 import Reader
+        from rosbags.rosbag2.errors import ReaderError
+        from rosbags.rosbag2.storage_sqlite3 import Sqlite3Reader
+
+        units = [Reader(layout.root)] if layout.metadata is not None else [Sqlite3Reader(f) for f in layout.files]
+        for unit in units:
+            try:
+                unit.open()
+            except (ReaderError, *_sqlite_errors()) as exc:
+                raise BagError(_sqlite_open_error(layout.root, exc)) from None
+            try:
+                for c in unit.connections:
+                    types[c.topic] = c.msgtype
+                    counts[c.topic] = counts.get(c.topic, 0) + int(c.msgcount)
+                md = unit.storage.metadata if isinstance(unit, Reader) else unit.metadata
+                if md.message_count:  # rosbags' end_time is one past the last message
+                    start = md.start_time if start is None else min(start, md.start_time)
+                    end = md.end_time - 1 if end is None else max(end, md.end_time - 1)
+            finally:
+                unit.close()
+        rep.expected = dict(meta_counts) if layout.metadata is not None else dict(counts)
+    for t, mt in meta_types.items():
+        types.setdefault(t, mt)
+    topics = {t: TopicInfo(t, types[t], counts.get(t, 0)) for t in types}
+    rep.finished = True
+    return BagInfo(layout.root, layout.storage, [str(f) for f in layout.files], topics, start, end, rep)
+
+
+class _Stream:
+    """An iterator with a :class:`ReadReport` (final once exhausted); usable as a context manager."""
+
+    def __init__(self, gen, report: ReadReport):
+        self._gen = gen
+        self.report = report
+
+    def __iter__(self):
+        return self
+
+    def __next__(self):
+        return next(self._gen)
+
+    def close(self) -> None:
+        """Stop reading and release the bag files."""
+        self._gen.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+        return False
+
+
+def _check_topics(info: BagInfo, wanted: dict) -> None:
+    """``wanted``: topic -> allowed types (empty tuple: any)."""
+    if not info.topics:
+        raise BagError(f"bag {info.path} has no topics (empty bag)")
+    for topic, allowed in wanted.items():
+        if topic not in info.topics:
+            have = ", ".join(f"{t.name} [{t.msgtype}]" for t in sorted(info.topics.values(), key=lambda x: x.name))
+            raise BagError(f"topic {topic!r} is not in bag {info.path}; it has: {have}")
+        mt = info.topics[topic].msgtype
+        if allowed and mt not in allowed:
+            raise BagError(f"topic {topic!r} has type {mt}, expected {' or '.join(allowed)}")
+
+
+def iter_raw(path, topics=None) -> Iterator[RawMessage]:
+    """Serialized messages of a bag in storage order (lazy), with a ``.report``.
+
+    Parameters
+    ----------
+    path : str or Path
+        Bag directory, ``metadata.yaml``, or bare ``.mcap`` / ``.db3`` file.
+    topics : str or collection of str, optional
+        Only these topics (each must exist in the bag); default all.
+
+    Returns
+    -------
+    iterator of RawMessage
+        ``data`` is the CDR payload exactly as stored (for ``rclpy.serialization``).
+    """
+    layout = _layout(path)
+    info = _open_layout(layout)
+    if isinstance(topics, str):
+        topics = [topics]
+    if topics is not None:
+        _check_topics(info, {t: () for t in topics})
+    rep = _new_report(layout)
+    rep.requested = None if topics is None else list(topics)
+    rep.expected = info.report.expected
+
+    def gen():
+        for topic, msgtype, t, data in _raw_stream(layout, topics, rep, None):
+            yield RawMessage(topic, msgtype, t, data)
+        rep.finished = True
+
+    return _Stream(gen(), rep)
+
+
+def iter_messages(path, topic: str) -> Iterator[tuple]:
+    """``(log_time_ns, message)`` of one topic, deserialized with ``rosbags`` (lazy), with a ``.report``.
+
+    ``log_time_ns`` is the bag's receive time; header stamps are in the messages. The message
+    objects have the ROS field names (``msg.header.stamp.sec``...), ``uint8[]`` fields are numpy
+    arrays.
+    """
+    layout = _layout(path)
+    info = _open_layout(layout)
+    _check_topics(info, {topic: ()})
+    rep = _new_report(layout)
+    rep.requested = [topic]
+    rep.expected = info.report.expected
+    types = _Types()
+
+    def gen():
+        for _, msgtype, t, data in _raw_stream(layout, [topic], rep, types):
+            yield t, types.deserialize(data, msgtype)
+        rep.finished = True
+
+    return _Stream(gen(), rep)
+
+
+# --------------------------------------------------------------------------------------------------
+# Samples
+
+
+def _stamp_ns(stamp) -> int:
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+class _SampleBuilder:
+    def __init__(self, topics, check_frames: bool, report: ReadReport):
+        self.image_topic, self.info_topic, self.pose_topic = topics
+        self.check_frames = check_frames
+        self.report = report
+        self._cams: dict = {}
+
+    def camera(self, msg, t: int):
+        fid = str(msg.header.frame_id)
+        key = (int(msg.width), int(msg.height), tuple(float(x) for x in msg.k), fid)
+        cam = self._cams.get(key)
+        if cam is None:
+            try:
+                cam = CameraModel.from_k(key[0], key[1], key[2], frame_id=fid or "camera_optical_frame")
+            except ValueError as exc:
+                raise BagError(f"{self.info_topic} at stamp {t} ns is not a usable calibration "
+                               f"(uncalibrated camera?): {exc}") from None
+            d = np.asarray(msg.d, dtype=float)
+            if d.size and np.any(d != 0):
+                self._warn(f"{self.info_topic} has distortion coefficients ({msg.distortion_model}: "
+                           f"{np.round(d, 4).tolist()}); the images are read as they are (not rectified) while "
+                           f"CameraModel is an undistorted pinhole: use a rectified topic (image_rect)")
+            if int(msg.binning_x) > 1 or int(msg.binning_y) > 1:
+                self._warn(f"{self.info_topic} declares binning {msg.binning_x}x{msg.binning_y}: ignored")
+            self._cams[key] = cam
+        return cam, fid
+
+    def pose(self, msg, t: int):
+        p, q = msg.pose.position, msg.pose.orientation
+        try:
+            T = pose_to_matrix([p.x, p.y, p.z], [q.x, q.y, q.z, q.w])
+        except ValueError as exc:
+            raise BagError(f"{self.pose_topic} at stamp {t} ns: {exc}") from None
+        return T, str(msg.header.frame_id)
+
+    def _warn(self, text: str) -> None:
+        if text not in self.report.warnings:
+            self.report.warnings.append(text)
+            log.warning(text)
+
+    def sample(self, match) -> Sample:
+        t = match.stamp_ns
+        (msgtype, img_msg), (cam, info_frame), (T, pose_frame) = match.items
+        try:
+            img = image_to_rgb(img_msg) if msgtype == IMAGE_TYPE else compressed_to_rgb(img_msg)
+        except (ValueError, TypeError) as exc:
+            raise BagError(f"{self.image_topic} at stamp {t} ns: {exc}") from None
+        if not img.flags.writeable or not img.flags.c_contiguous:
+            img = np.array(img, order="C")
+        frame = str(img_msg.header.frame_id)
+        if img.shape[:2] != cam.shape:
+            raise BagError(f"{self.image_topic} at stamp {t} ns is {img.shape[1]}x{img.shape[0]} but "
+                           f"{self.info_topic} says {cam.width}x{cam.height}")
+        if self.check_frames:
+            for name, other in ((self.info_topic, info_frame), (self.pose_topic, pose_frame)):
+                if frame and other and other != frame:
+                    raise BagError(f"frame mismatch at stamp {t} ns: {self.image_topic} is in {frame!r} but "
+                                   f"{name} is in {other!r}; the pose must be T_cam_panel in the image's optical "
+                                   f"frame (pass check_frames=False to accept it anyway)")
+        if frame and cam.frame_id != frame:
+            cam = CameraModel(cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy, frame)
+        return Sample(t, img, cam, T.copy(), frame or cam.frame_id)
+
+
+def read_samples(path, image_topic: str = "/camera/image_raw", info_topic: str = "/camera/camera_info",
+                 pose_topic: str = "/panel/pose", max_dt: float = 0.05, info_max_dt: float | None = 1.0,
+                 lateness: float = 0.1, queue_size: int = 64, check_frames: bool = True) -> Iterator[Sample]:
+    """Time-synchronized (image, camera_info, pose) samples of a bag, read lazily.
+
+    Parameters
+    ----------
+    path : str or Path
+        Bag directory, ``metadata.yaml``, or bare ``.mcap`` / ``.db3`` file; MCAP files that were
+        cut off are read up to the last complete message.
+    image_topic : str
+        ``sensor_msgs/Image`` (rgb8, bgr8, rgba8, bgra8, mono8) or ``sensor_msgs/CompressedImage``.
+    info_topic : str
+        ``sensor_msgs/CameraInfo``.
+    pose_topic : str
+        ``geometry_msgs/PoseStamped``: the panel pose in the camera optical frame.
+    max_dt : float
+        Largest |pose stamp - image stamp| in seconds; images without such a pose are dropped.
+    info_max_dt : float or None
+        The same for camera_info (often slower than the images, or published once): ``None``
+        accepts the nearest camera_info however far.
+    lateness : float
+        Out-of-order tolerance of header stamps within a topic, seconds (see
+        :class:`~uw_sil.stamps.StampSynchronizer`).
+    queue_size : int
+        Most images kept waiting for their partners.
+    check_frames : bool
+        Require camera_info and pose ``header.frame_id`` to equal the image's (when both are set).
+
+    Returns
+    -------
+    iterator of Sample
+        In image arrival order, with a ``.report`` (:class:`ReadReport`, final once exhausted:
+        truncation, losses, pairing counters). Exact stamp matches are preferred, then the nearest
+        message within the tolerance.
+
+    Raises
+    ------
+    FileNotFoundError, BagError
+        At the call: not a bag, empty bag, missing topic (the message lists the bag's topics),
+        wrong message type. While iterating: unsupported image encoding, inconsistent image data,
+        image size different from camera_info, frame mismatch, invalid calibration or pose.
+    """
+    topics = (image_topic, info_topic, pose_topic)
+    if len(set(topics)) != 3:
+        raise ValueError(f"image, camera_info and pose topics must differ, got {topics}")
+    layout = _layout(path)
+    info = _open_layout(layout)
+    _check_topics(info, {image_topic: (IMAGE_TYPE, COMPRESSED_IMAGE_TYPE), info_topic: (CAMERA_INFO_TYPE,),
+                         pose_topic: (POSE_TYPE,)})
+    if not info.topics[image_topic].count:
+        raise BagError(f"topic {image_topic!r} of bag {info.path} has no messages")
+    rep = _new_report(layout)
+    rep.requested = list(topics)
+    rep.expected = info.report.expected
+    sync = StampSynchronizer(3, max_dt=[info_max_dt, max_dt], lateness=lateness, queue_size=queue_size)
+    rep.sync = sync.stats
+    builder = _SampleBuilder(topics, check_frames, rep)
+    types = _Types()
+    index = {image_topic: 0, info_topic: 1, pose_topic: 2}
+
+    def gen():
+        for topic, msgtype, _, data in _raw_stream(layout, topics, rep, types):
+            msg = types.deserialize(data, msgtype)
+            t = _stamp_ns(msg.header.stamp)
+            k = index[topic]
+            item = (msgtype, msg) if k == 0 else builder.camera(msg, t) if k == 1 else builder.pose(msg, t)
+            for match in sync.add(k, t, item):
+                rep.samples += 1
+                yield builder.sample(match)
+        for match in sync.flush():
+            rep.samples += 1
+            yield builder.sample(match)
+        rep.finished = True
+        if sync.stats.dropped:
+            log.warning("%s: %d of %d images had no camera_info/pose within tolerance and were dropped",
+                        layout.root, sync.stats.dropped, sync.stats.received[0])
+
+    return _Stream(gen(), rep)
+
+
+# --------------------------------------------------------------------------------------------------
+# Writing
+
+
+def _bag_dir_and_storage(path, storage: str | None) -> tuple[Path, str]:
+    p = Path(path)
+    by_suffix = {".mcap": "mcap", ".db3": "sqlite3"}.get(p.suffix)
+    if storage is not None and storage not in _STORAGE_SUFFIX:
+        raise ValueError(f"storage must be 'mcap' or 'sqlite3', got {storage!r}")
+    if by_suffix is not None:
+        if storage is not None and storage != by_suffix:
+            raise ValueError(f"output {p.name} asks for {by_suffix} storage but storage={storage!r}")
+        d = p.with_suffix("")
+        if not d.name:
+            raise ValueError(f"cannot name a bag after {p}")
+        return d, by_suffix
+    return p, storage or "mcap"
+
+
+def _looks_like_bag_dir(d: Path) -> bool:
+    """Only metadata.yaml and storage files (and SQLite side files) in it."""
+    return d.is_dir() and all(
+        f.is_file() and (f.name == "metadata.yaml" or f.suffix in (".mcap", ".db3")
+                         or f.name.endswith((".db3-shm", ".db3-wal", ".db3-journal")))
+        for f in d.iterdir())
+
+
+def _check_sample(s: Sample, i: int) -> tuple[np.ndarray, np.ndarray]:
+    if not isinstance(s, Sample):
+        raise TypeError(f"sample {i} is a {type(s).__name__}, expected uw_sil.bag.Sample")
+    if isinstance(s.stamp_ns, bool) or not isinstance(s.stamp_ns, (int, np.integer)) or not 0 <= s.stamp_ns < 2**63:
+        raise ValueError(f"sample {i}: stamp_ns must be an integer in [0, 2**63), got {s.stamp_ns!r}")
+    img = np.asarray(s.image)
+    if img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:
+        raise ValueError(f"sample {i}: image must be (H, W, 3) uint8 RGB, got {img.dtype} {img.shape}")
+    if not isinstance(s.camera, CameraModel):
+        raise TypeError(f"sample {i}: camera must be a CameraModel")
+    if img.shape[:2] != s.camera.shape:
+        raise ValueError(f"sample {i}: image is {img.shape[1]}x{img.shape[0]} but the camera is "
+                         f"{s.camera.width}x{s.camera.height}")
+    T = np.asarray(s.pose, dtype=float)
+    if T.shape != (4, 4) or not np.isfinite(T).all():
+        raise ValueError(f"sample {i}: pose must be a finite 4x4 matrix, got shape {T.shape}")
+    R = T[:3, :3]
+    if (not np.allclose(R.T @ R, np.eye(3), atol=1e-6) or not math.isclose(np.linalg.det(R), 1.0, abs_tol=1e-6)
+            or not np.allclose(T[3], [0, 0, 0, 1])):
+        raise ValueError(f"sample {i}: pose is not a rigid transform (rotation not orthonormal or bad last row)")
+    return img, T
+
+
+def write_trial(path, samples: Iterable[Sample], storage: str | None = None,
+                image_topic: str = "/camera/image_raw", info_topic: str = "/camera/camera_info",
+                pose_topic: str = "/panel/pose", write_tf: bool = True, camera_frame: str | None = None,
+                panel_frame: str = "panel", tf_topic: str = "/tf", overwrite: bool = False) -> Path:
+    """Write samples to a ROS 2 bag that ``ros2 bag play`` accepts (streaming).
+
+    Parameters
+    ----------
+    path : str or Path
+        ``trial.mcap`` or ``trial.db3`` write the bag directory ``trial/`` (with ``trial/trial.mcap``
+        or ``trial/trial.db3`` and ``metadata.yaml``), the suffix choosing the storage; a path
+        without these suffixes is the bag directory itself.
+    samples : iterable of Sample
+        Consumed one at a time (a generator of rendered frames is never held in memory).
+    storage : {'mcap', 'sqlite3'}, optional
+        Default: from the suffix, else ``'mcap'``. Must agree with the suffix.
+    image_topic, info_topic, pose_topic : str
+        ``sensor_msgs/Image`` (rgb8), ``sensor_msgs/CameraInfo`` (plumb_bob, zero distortion,
+        identity R), ``geometry_msgs/PoseStamped`` (panel pose in the camera optical frame). All
+        three share the sample's stamp, as header stamp and as bag receive time.
+    write_tf : bool
+        Also write ``tf2_msgs/TFMessage`` on ``tf_topic``: ``camera_frame -> panel_frame``.
+    camera_frame : str, optional
+        ``header.frame_id`` of all messages; default each sample's ``frame_id``.
+    panel_frame : str
+        ``child_frame_id`` of the transform.
+    overwrite : bool
+        Replace an existing bag directory (only if it holds nothing but bag files).
+
+    Returns
+    -------
+    Path
+        The bag directory.
+
+    Notes
+    -----
+    Samples are validated as they come (RGB uint8 of the camera's size, rigid 4x4 pose, integer
+    stamp). If a sample is invalid or ``samples`` raises, the exception propagates and the partial
+    bag directory is removed (``rosbags`` would leave it without ``metadata.yaml`` and without the
+    frames still buffered in its last chunk or transaction).
+    """
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    bag_dir, storage = _bag_dir_and_storage(path, storage)
+    topics = [image_topic, info_topic, pose_topic] + ([tf_topic] if write_tf else [])
+    if len(set(topics)) != len(topics):
+        raise ValueError(f"topics must differ, got {topics}")
+    if camera_frame is not None and not camera_frame:
+        raise ValueError("camera_frame must be a non-empty frame name")
+    if write_tf and not panel_frame:
+        raise ValueError("panel_frame must be a non-empty frame name")
+    it = iter(samples)
+    first = next(it, None)
+    if first is None:
+        raise ValueError("write_trial got no samples")
+    if bag_dir.exists():
+        if not overwrite:
+            raise FileExistsError(f"{bag_dir} exists (pass overwrite=True to replace it)")
+        if not _looks_like_bag_dir(bag_dir):
+            raise FileExistsError(f"{bag_dir} exists and holds files that are not bag files: not replacing it")
+        shutil.rmtree(bag_dir)
+    bag_dir.parent.mkdir(parents=True, exist_ok=True)
+
+    ts = get_typestore(Stores.ROS2_KILTED)
+    plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
+    opened: list = []  # set once the writer has created bag_dir: only then is it ours to remove
+    try:
+        _write(Writer(bag_dir, version=_ROSBAG2_VERSION, storage_plugin=plugin), opened, ts, first, it,
+               image_topic, info_topic, pose_topic, tf_topic if write_tf else None, camera_frame, panel_frame)
+    except BaseException:
+        if opened:
+            shutil.rmtree(bag_dir, ignore_errors=True)
+        raise
+    return bag_dir
+
+
+def _write(writer, opened, ts, first, it, image_topic, info_topic, pose_topic, tf_topic, camera_frame, panel_frame):
+    T_ = ts.types
+    Header, Time = T_["std_msgs/msg/Header"], T_["builtin_interfaces/msg/Time"]
+    Image, CameraInfo, ROI = T_[IMAGE_TYPE], T_[CAMERA_INFO_TYPE], T_["sensor_msgs/msg/RegionOfInterest"]
+    PoseStamped, Pose = T_[POSE_TYPE], T_["geometry_msgs/msg/Pose"]
+    Point, Quaternion, Vector3 = (T_["geometry_msgs/msg/Point"], T_["geometry_msgs/msg/Quaternion"],
+                                  T_["geometry_msgs/msg/Vector3"])
+    TransformStamped, Transform, TFMessage = (T_["geometry_msgs/msg/TransformStamped"],
+                                              T_["geometry_msgs/msg/Transform"], T_[TF_TYPE])
+    with writer as w:
+        opened.append(True)
+        w.set_custom_data("generator", "uw_sil.bag.write_trial")
+        c_img = w.add_connection(image_topic, IMAGE_TYPE, typestore=ts)
+        c_info = w.add_connection(info_topic, CAMERA_INFO_TYPE, typestore=ts)
+        c_pose = w.add_connection(pose_topic, POSE_TYPE, typestore=ts)
+        c_tf = w.add_connection(tf_topic, TF_TYPE, typestore=ts) if tf_topic is not None else None
+        i = 0
+        for s in _chain(first, it):
+            img, T = _check_sample(s, i)
+            frame = camera_frame if camera_frame is not None else s.frame_id
+            if not frame:
+                raise ValueError(f"sample {i} has an empty frame_id (and no camera_frame was given)")
+            t = int(s.stamp_ns)
+            hdr = Header(stamp=Time(sec=t // 1_000_000_000, nanosec=t % 1_000_000_000), frame_id=frame)
+            h, wd = img.shape[:2]
+            img_msg = Image(header=hdr, height=h, width=wd, encoding="rgb8", is_bigendian=0, step=3 * wd,
+                            data=np.ascontiguousarray(img).reshape(-1))
+            cam = s.camera
+            info_msg = CameraInfo(header=hdr, height=cam.height, width=cam.width, distortion_model="plumb_bob",
+                                  d=np.zeros(5), k=cam.K.reshape(-1), r=np.eye(3).reshape(-1), p=cam.P.reshape(-1),
+                                  binning_x=0, binning_y=0,
+                                  roi=ROI(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False))
+            pos, quat = matrix_to_pose(T)
+            pose_msg = PoseStamped(header=hdr, pose=Pose(position=Point(x=pos[0], y=pos[1], z=pos[2]),
+                                                         orientation=Quaternion(x=quat[0], y=quat[1], z=quat[2],
+                                                                                w=quat[3])))
+            w.write(c_img, t, ts.serialize_cdr(img_msg, IMAGE_TYPE))
+            w.write(c_info, t, ts.serialize_cdr(info_msg, CAMERA_INFO_TYPE))
+            w.write(c_pose, t, ts.serialize_cdr(pose_msg, POSE_TYPE))
+            if c_tf is not None:
+                tf = TransformStamped(header=hdr, child_frame_id=panel_frame,
+                                      transform=Transform(translation=Vector3(x=pos[0], y=pos[1], z=pos[2]),
+                                                          rotation=pose_msg.pose.orientation))
+                w.write(c_tf, t, ts.serialize_cdr(TFMessage(transforms=[tf]), TF_TYPE))
+            i += 1
+
+
+def _chain(first, rest):
+    yield first
+    yield from rest

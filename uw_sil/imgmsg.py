@@ -1,0 +1,148 @@
+"""Conversion between ``sensor_msgs/Image`` / ``CompressedImage`` messages and RGB numpy arrays.
+
+The functions take any object with the message's fields (an rclpy message, a rosbags message, a
+``SimpleNamespace``), so the bag reader and the ROS nodes share one conversion and no ROS import is
+needed here. Only 8-bit colour and grey encodings are supported: the underwater image model works on
+8-bit RGB.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["SUPPORTED_ENCODINGS", "image_to_rgb", "rgb_to_image_fields", "compressed_to_rgb", "message_bytes"]
+
+# encoding -> (channels, order of R, G, B among the channels); mono is replicated.
+_LAYOUT = {
+    "rgb8": (3, (0, 1, 2)),
+    "bgr8": (3, (2, 1, 0)),
+    "rgba8": (4, (0, 1, 2)),
+    "bgra8": (4, (2, 1, 0)),
+    "mono8": (1, (0, 0, 0)),
+    "8UC1": (1, (0, 0, 0)),
+}
+
+#: Encodings :func:`image_to_rgb` accepts (``8UC1`` is read like ``mono8``).
+SUPPORTED_ENCODINGS = tuple(_LAYOUT)
+
+
+def message_bytes(data) -> np.ndarray:
+    """The ``uint8[]`` field of a message as a 1-D uint8 array, without copying when possible.
+
+    Accepts what the ROS Python stacks put there: a numpy array (rosbags), ``array.array('B')``
+    (rclpy), ``bytes`` / ``bytearray`` / ``memoryview``, or a list of ints.
+    """
+    if isinstance(data, np.ndarray):
+        if data.dtype != np.uint8:
+            raise TypeError(f"image data must be uint8, got a {data.dtype} array")
+        return data.reshape(-1)
+    if isinstance(data, (list, tuple)):
+        return np.asarray(data, dtype=np.uint8)
+    try:
+        return np.frombuffer(data, dtype=np.uint8)
+    except TypeError:
+        raise TypeError(f"cannot read image data of type {type(data).__name__}") from None
+
+
+def image_to_rgb(msg) -> np.ndarray:
+    """RGB image of a ``sensor_msgs/Image``.
+
+    Parameters
+    ----------
+    msg : object
+        With ``height``, ``width``, ``encoding``, ``step`` and ``data`` (``is_bigendian`` is
+        irrelevant for 8-bit encodings).
+
+    Returns
+    -------
+    ndarray
+        (height, width, 3) uint8, RGB order. ``bgr8``/``bgra8`` are reordered, alpha is dropped,
+        ``mono8`` is replicated to three channels. The result may share memory with ``msg.data``
+        when no conversion is needed (``rgb8`` without row padding); treat it as read-only or copy.
+
+    Raises
+    ------
+    ValueError
+        Unknown encoding (the message names the supported ones), ``step`` shorter than a row, or
+        ``len(data) != step * height``.
+    """
+    enc = str(msg.encoding)
+    if enc not in _LAYOUT:
+        raise ValueError(f"unsupported image encoding {enc!r}; supported: {', '.join(SUPPORTED_ENCODINGS)}")
+    ch, order = _LAYOUT[enc]
+    h, w, step = int(msg.height), int(msg.width), int(msg.step)
+    if h <= 0 or w <= 0:
+        raise ValueError(f"image has no pixels: {w}x{h}")
+    if step < w * ch:
+        raise ValueError(f"image step {step} is shorter than a row of {w} {enc} pixels ({w * ch} bytes)")
+    buf = message_bytes(msg.data)
+    if buf.size != step * h:
+        raise ValueError(f"image data has {buf.size} bytes, expected step*height = {step}*{h} = {step * h} "
+                         f"for a {w}x{h} {enc} image")
+    rows = buf.reshape(h, step)[:, : w * ch].reshape(h, w, ch)
+    if enc == "rgb8":
+        return rows if step == w * ch else np.ascontiguousarray(rows)
+    return np.ascontiguousarray(rows[:, :, list(order)])
+
+
+def rgb_to_image_fields(arr: np.ndarray, encoding: str = "rgb8") -> dict:
+    """Fields of a ``sensor_msgs/Image`` holding ``arr``.
+
+    Parameters
+    ----------
+    arr : ndarray
+        (H, W, 3) uint8 RGB, or (H, W) uint8 grey for ``mono8``.
+    encoding : {'rgb8', 'bgr8', 'mono8'}
+        Encoding of the message. ``bgr8`` reorders the channels.
+
+    Returns
+    -------
+    dict
+        ``height``, ``width``, ``encoding``, ``is_bigendian`` (0), ``step`` and ``data`` (``bytes``:
+        assign it as is; rclpy converts ``bytes`` fast, while assigning an ndarray is ~400x slower).
+    """
+    a = np.asarray(arr)
+    if a.dtype != np.uint8:
+        raise ValueError(f"image must be uint8, got {a.dtype}")
+    if encoding in ("rgb8", "bgr8"):
+        if a.ndim != 3 or a.shape[2] != 3:
+            raise ValueError(f"{encoding} needs an (H, W, 3) array, got shape {a.shape}")
+        if encoding == "bgr8":
+            a = a[:, :, ::-1]
+        ch = 3
+    elif encoding == "mono8":
+        if a.ndim != 2:
+            raise ValueError(f"mono8 needs an (H, W) array, got shape {a.shape}")
+        ch = 1
+    else:
+        raise ValueError(f"cannot write encoding {encoding!r}; use rgb8, bgr8 or mono8")
+    h, w = a.shape[:2]
+    if h == 0 or w == 0:
+        raise ValueError(f"image has no pixels: shape {a.shape}")
+    return {"height": int(h), "width": int(w), "encoding": encoding, "is_bigendian": 0, "step": int(w * ch),
+            "data": np.ascontiguousarray(a).tobytes()}
+
+
+def compressed_to_rgb(msg) -> np.ndarray:
+    """RGB image of a ``sensor_msgs/CompressedImage`` (JPEG or PNG, 8-bit), decoded with OpenCV.
+
+    ``msg.format`` is e.g. ``"jpeg"``, ``"png"`` or ``"rgb8; jpeg compressed bgr8"`` (the form
+    ``compressed_image_transport`` writes); the payload itself tells OpenCV the codec.
+    """
+    import cv2  # heavy: imported only where compressed images are actually read
+
+    fmt = str(msg.format)
+    if "compressedDepth" in fmt:
+        raise ValueError(f"compressed depth images are not colour images (format {fmt!r})")
+    buf = message_bytes(msg.data)
+    if buf.size == 0:
+        raise ValueError("compressed image has no data")
+    img = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise ValueError(f"OpenCV could not decode the compressed image (format {fmt!r}, {buf.size} bytes)")
+    if img.dtype != np.uint8:
+        raise ValueError(f"compressed image decodes to {img.dtype}, only 8-bit images are supported")
+    if img.ndim == 2:
+        return np.repeat(img[:, :, None], 3, axis=2)
+    if img.shape[2] == 4:
+        return np.ascontiguousarray(img[:, :, 2::-1])
+    return np.ascontiguousarray(img[:, :, ::-1])
