@@ -34,6 +34,8 @@ setup(
         "zstandard>=0.20",
         "lz4>=4.0",
         "matplotlib>=3.7",
+        # uw_sil.scene builds the panel texture as a PIL image (already pulled in by pyrender2).
+        "Pillow>=9.0",
         "PyYAML>=6.0",
         "tqdm>=4.60",
     ],
@@ -56,6 +58,10 @@ setup(
     entry_points={
         "console_scripts": [
             "uw-sil = uw_sil.cli:main",
+            # ROS 2 nodes (`ros2 run uw_sil <name>` in a workspace; plain commands in a venv)
+            "sim_camera = uw_sil.nodes.sim_camera:main",
+            "backward_fit = uw_sil.nodes.backward_fit:main",
+            "bag_play = uw_sil.nodes.bag_play:main",
         ],
     },
 )
