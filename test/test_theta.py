@@ -79,6 +79,21 @@ def test_channels_and_mask_are_passed_on(frames):
     assert not np.array_equal(ThetaReference(ref, mask=half).score(cands), ThetaReference(ref).score(cands))
 
 
+def test_hist_masks_affect_theta2_only_and_average(frames):
+    ref, cands = frames[0]
+    left = np.zeros(ref.shape[:2], bool)
+    left[:, :100] = True
+    plain = ThetaReference(ref).evaluate(cands)
+    one = ThetaReference(ref, hist_mask=left).evaluate(cands)
+    np.testing.assert_array_equal(one.theta1, plain.theta1)
+    np.testing.assert_array_equal(one.theta2, [hsv_histogram_similarity(ref, c, mask=left) for c in cands])
+    two = ThetaReference(ref, hist_mask=[left, ~left]).evaluate(cands)
+    right = [hsv_histogram_similarity(ref, c, mask=~left) for c in cands]
+    np.testing.assert_allclose(two.theta2, (one.theta2 + np.array(right)) / 2, rtol=0, atol=1e-15)
+    with pytest.raises(ValueError, match="empty"):
+        ThetaReference(ref, hist_mask=[])
+
+
 def test_mean_theta_over_frames(frames):
     refs = [ThetaReference(r) for r, _ in frames]
     stacks = [c for _, c in frames]

@@ -27,11 +27,12 @@ DEFAULT_TRUTH = UnderwaterParams(a=(0.42, 0.11, 0.08), b=(0.06, 0.32, 0.42), rho
 class SensorNoise:
     """Camera noise before 8-bit quantization: Poisson-Gaussian (shot + read noise), in [0, 1] units.
 
-    ``var = read_sigma^2 + shot_gain * I``; defaults are those of a compressed ROV HD camera feed.
+    ``var = read_sigma^2 + shot_gain * I``. Defaults: 1 grey level of read noise and about 2.3 levels
+    at mid grey (3.3 at white), like a well-exposed HD camera before compression.
     """
 
-    read_sigma: float = 1.5 / 255.0
-    shot_gain: float = 0.5 / 255.0
+    read_sigma: float = 1.0 / 255.0
+    shot_gain: float = 0.04 / 255.0
 
     def __post_init__(self):
         if self.read_sigma < 0 or self.shot_gain < 0:
@@ -98,16 +99,17 @@ def load_truth(bag_path) -> dict:
 
 
 def synthesize_trial(out, n_frames: int = 20, seed: int = 0, params: UnderwaterParams = DEFAULT_TRUTH,
-                     camera: Optional[CameraModel] = None, storage: str = "mcap", fog: str = "exp2",
+                     camera: Optional[CameraModel] = None, storage: Optional[str] = None, fog: str = "exp2",
                      noise: SensorNoise = SensorNoise(), model=None, start_m: float = 4.0, end_m: float = 1.2,
-                     rate_hz: float = 10.0, effects: Optional[list] = None,
+                     rate_hz: float = 10.0, effects: Optional[list] = None, overwrite: bool = False,
                      progress: Optional[Callable[[int, int], None]] = None) -> dict:
     """Render an approach, degrade it with ``params``, add noise, and write a ROS 2 bag plus truth sidecar.
 
     Parameters
     ----------
     out : path
-        Bag to write (see :func:`uw_sil.bag.write_trial` for the layout).
+        Bag to write (see :func:`uw_sil.bag.write_trial` for the layout: ``trial.mcap`` becomes the bag
+        directory ``trial/`` with ``trial/trial.mcap``; the truth goes to ``trial.truth.json``).
     effects : list of callables, optional
         Extra physics applied to each degraded float frame, ``effect(img, render) -> img`` (used by
         the discrepancy experiments to conceal effects the model lacks). Recorded by name in the truth.
@@ -119,31 +121,29 @@ def synthesize_trial(out, n_frames: int = 20, seed: int = 0, params: UnderwaterP
         The ground truth written to the sidecar (with ``params`` as a plain dict).
     """
     from .bag import Sample, write_trial
-    from .optics import degrade
-    from .render import Renderer
+    from .simcam import SimCamera
 
     if n_frames < 1:
         raise ValueError("n_frames must be >= 1")
     camera = camera or CameraModel.from_fov()
     rng = np.random.default_rng(seed)
     poses = approach_trajectory(n_frames, start_m, end_m, rng)
-    p = params.as_vector()
     t0_ns = 1_700_000_000_000_000_000 + int(seed) * 1_000_000_000
     dt_ns = int(round(1e9 / rate_hz))
 
     def samples() -> Iterator:
-        with Renderer(model, camera=camera) as renderer:
+        with SimCamera(params, camera=camera, model=model, fog=fog) as sim:
             for k, T in enumerate(poses):
-                rr = renderer.render(T)
-                img = degrade(rr.rgb, rr.range, rr.depth, p, fog=fog)
+                frame = sim.render(T)
+                img = frame.image
                 for eff in effects or ():
-                    img = eff(img, rr)
+                    img = eff(img, frame.render)
                 yield Sample(stamp_ns=t0_ns + k * dt_ns, image=add_sensor_noise(img, noise, rng), camera=camera,
                              pose=T, frame_id=camera.frame_id)
                 if progress:
                     progress(k + 1, n_frames)
 
-    bag_path = write_trial(out, samples(), storage=storage)
+    bag_path = write_trial(out, samples(), storage=storage, overwrite=overwrite)
     truth = {
         "params": params.as_dict(),
         "fog": fog,

@@ -47,6 +47,14 @@ class ThetaReference:
         Pixels that count in both terms (e.g. to exclude an overlay or the vehicle's own
         parts): FSIMc pools over them (at its downsampled grid), theta_2 histograms count only
         them. ``None``: all pixels, and theta_1 equals :func:`uw_sil.fsim.fsim` exactly.
+    hist_mask : ndarray of bool (H, W), or a sequence of them, optional
+        Pixels that count in theta_2 only (overrides ``mask`` there). With several masks,
+        theta_2 is the mean of the per-mask theta_2 values. The backward optimizer passes the
+        rendered object mask and the water mask: with the paper's all-pixel histograms, the
+        median over the 10x10 regions is decided by water regions whenever the object covers
+        fewer than half of them, and theta_2 then carries no information about attenuation or
+        fog; with the object mask alone, the water colour is left to FSIMc, which weighs flat
+        water very little.
     dtype : {numpy.float32, numpy.float64}
         Working precision of the candidate FFTs (float32: agrees with float64 to ~1e-7 in
         theta_1, about twice as fast).
@@ -78,6 +86,7 @@ class ThetaReference:
         regions: int = 10,
         bins=None,
         mask=None,
+        hist_mask=None,
         dtype=np.float32,
         workers=None,
     ):
@@ -86,7 +95,15 @@ class ThetaReference:
             raise ValueError(f"reference must be an RGB image (H, W, 3), got shape {reference.shape}")
         self.shape = reference.shape
         self._fsim = FSIMReference(reference, mask=mask, dtype=dtype, workers=workers)
-        self._hist = HistogramReference(reference, channels=channels, regions=regions, bins=bins, mask=mask)
+        if hist_mask is None or (isinstance(hist_mask, np.ndarray) and hist_mask.ndim == 2):
+            hist_masks = [mask if hist_mask is None else hist_mask]
+        else:
+            hist_masks = list(hist_mask)
+            if not hist_masks:
+                raise ValueError("hist_mask is an empty sequence")
+        self._hists = [HistogramReference(reference, channels=channels, regions=regions, bins=bins, mask=m)
+                       for m in hist_masks]
+        self._hist = self._hists[0]
         self._fsim_planar_shape = (3,) + reference.shape[:2]
 
     @property
@@ -137,7 +154,7 @@ class ThetaReference:
                 t1[k] = self._fsim._score_planar(planes.reshape(self._fsim_planar_shape))[1]
             else:
                 t1[k] = self._fsim._score_planar(self._fsim._to_planar(img))[1]
-            t2[k] = self._hist._score_planar(planes)
+            t2[k] = sum(h._score_planar(planes) for h in self._hists) / len(self._hists)
         return ThetaScores((t1 + t2) / 2.0, t1, t2)
 
     def score(self, candidates) -> np.ndarray:

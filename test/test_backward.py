@@ -1,0 +1,84 @@
+"""Backward optimization end to end on small synthetic trials where the model is exactly right."""
+import json
+
+import numpy as np
+import pytest
+import yaml
+
+from uw_sil.backward import (BackwardObjective, fit_bag, fit_frames, select_frames, write_params_yaml)
+from uw_sil.bag import read_samples
+from uw_sil.camera import CameraModel
+from uw_sil.params import ParamSpace, UnderwaterParams
+from uw_sil.render import Renderer
+from uw_sil.synth import load_truth, synthesize_trial
+
+SMALL = CameraModel.from_fov(320, 240, 70.0)
+TRUTH = UnderwaterParams(a=(0.40, 0.12, 0.08), b=(0.07, 0.33, 0.43), rho_f=0.10)
+
+
+@pytest.fixture(scope="module")
+def trial(tmp_path_factory):
+    out = tmp_path_factory.mktemp("trial") / "trial.mcap"
+    synthesize_trial(out, n_frames=11, seed=3, params=TRUTH, camera=SMALL, start_m=3.5, end_m=1.2)
+    return out
+
+
+@pytest.fixture(scope="module")
+def frames(trial):
+    with Renderer(camera=SMALL) as r:
+        return select_frames(read_samples(trial), r, k=3, stride=5).frames
+
+
+def test_truth_sidecar_is_next_to_the_bag_and_not_in_it(trial):
+    truth = load_truth(trial)
+    np.testing.assert_allclose(truth["params"].as_vector(), TRUTH.as_vector())
+    assert trial.with_name("trial.truth.json").exists()
+
+
+def test_frame_selection_spreads_over_ranges(frames):
+    assert [f.index for f in frames] == [0, 5, 10]
+    ranges = [f.range_median for f in frames]
+    assert ranges[0] > ranges[1] > ranges[2]
+
+
+def test_objective_is_maximal_near_truth(frames):
+    obj = BackwardObjective(frames, ParamSpace("rgb"))
+    x_true = TRUTH.as_vector()
+    others = np.array([x_true * [1.3, 1, 1, 1, 1, 1, 1], x_true + [0, 0, 0, 0.1, 0, 0, 0],
+                       x_true * [1, 1, 1, 1, 1, 1, 2.5], (ParamSpace("rgb").lower + ParamSpace("rgb").upper) / 2])
+    th = obj(np.vstack([x_true, others]))
+    assert th.shape == (5,)
+    assert np.all(th[0] > th[1:])
+
+
+def test_cmaes_recovers_parameters(frames):
+    # three ranges (3.5, 2.4, 1.2 m) separate fog from attenuation; ~100 iterations to converge
+    fit = fit_frames(frames, method="cmaes", seed=1, max_iter=100)
+    got, want = fit.params.as_vector(), TRUTH.as_vector()
+    np.testing.assert_allclose(got[:3], want[:3], rtol=0.05)       # attenuation within 5 %
+    np.testing.assert_allclose(got[3:6], want[3:6], atol=0.01)     # background within 0.01
+    assert got[6] == pytest.approx(want[6], rel=0.10)              # fog within 10 %
+    assert fit.theta_best > fit.theta_start
+
+
+def test_nothing_visible_gives_a_clear_error(trial):
+    class Away:
+        def __init__(self, it):
+            self.it = it
+
+        def __iter__(self):
+            for s in self.it:
+                s.pose = s.pose.copy()
+                s.pose[2, 3] = -5.0        # panel behind the camera
+                yield s
+
+    with Renderer(camera=SMALL) as r, pytest.raises(ValueError, match="panel not visible in any of the first 11"):
+        select_frames(Away(read_samples(trial)), r, k=3)
+
+
+def test_params_yaml_is_ros2_params_file(tmp_path):
+    p = write_params_yaml(tmp_path / "fit.yaml", TRUTH, comment="fitted")
+    d = yaml.safe_load(p.read_text())
+    assert d["/**"]["ros__parameters"]["a_r"] == pytest.approx(0.40)
+    assert d["/**"]["ros__parameters"]["fog_mode"] == "exp2"
+    assert not list(tmp_path.glob(".*tmp*"))

@@ -1,0 +1,88 @@
+"""The simulated camera: renderer + underwater model with its current parameters, one call per pose.
+
+This is what the ``sim_camera`` ROS node and the offline tools (``uw-sil synth``) share: the node only
+converts messages and parameters around it.
+
+Examples
+--------
+>>> from uw_sil.simcam import SimCamera
+>>> from uw_sil.scene import facing_pose
+>>> cam = SimCamera()                       # shipped panel, 640x480, default parameters
+>>> frame = cam.render(facing_pose(2.0))    # frame.image: (480, 640, 3) float32 in [0, 1]
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+
+from .camera import CameraModel
+from .optics import FOG_MODES, degrade
+from .params import UnderwaterParams
+
+__all__ = ["SimFrame", "SimCamera"]
+
+
+@dataclass
+class SimFrame:
+    """One simulated camera frame."""
+
+    image: np.ndarray     # (H, W, 3) float32 in [0, 1]: the underwater image
+    render: object        # uw_sil.render.RenderResult: clean rgb, depth, range, labels
+
+    def image_uint8(self) -> np.ndarray:
+        return np.clip(np.rint(self.image * 255.0), 0, 255).astype(np.uint8)
+
+
+class SimCamera:
+    """Renderer plus underwater parameters. Parameters and camera can change between frames.
+
+    Parameters
+    ----------
+    params : UnderwaterParams, optional
+    camera : CameraModel, optional
+    model : path or trimesh.Scene, optional
+        Panel model (default: the shipped intervention panel).
+    fog : {'exp2', 'exp', 'none'}
+    """
+
+    def __init__(self, params: Optional[UnderwaterParams] = None, camera: Optional[CameraModel] = None,
+                 model=None, fog: str = "exp2"):
+        from .render import Renderer
+
+        self.params = params or UnderwaterParams()
+        self.fog = fog
+        self.renderer = Renderer(model, camera=camera or CameraModel.from_fov())
+
+    @property
+    def fog(self) -> str:
+        return self._fog
+
+    @fog.setter
+    def fog(self, mode: str):
+        if mode not in FOG_MODES:
+            raise ValueError(f"unknown fog mode {mode!r}; expected one of {FOG_MODES}")
+        self._fog = mode
+
+    @property
+    def camera(self) -> CameraModel:
+        return self.renderer.camera
+
+    @camera.setter
+    def camera(self, cam: CameraModel):
+        if cam != self.renderer.camera:
+            self.renderer.camera = cam
+
+    def render(self, T_cam_panel) -> SimFrame:
+        rr = self.renderer.render(T_cam_panel)
+        return SimFrame(degrade(rr.rgb, rr.range, rr.depth, self.params.as_vector(), fog=self.fog), rr)
+
+    def close(self):
+        self.renderer.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
