@@ -47,6 +47,8 @@ setup(
             "ros-kilted-geometry-msgs",
             "ros-kilted-std-srvs",
             "ros-kilted-rcl-interfaces",
+            "ros-kilted-std-msgs",
+            "ros-kilted-rosgraph-msgs",
         ],
         "test": ["pytest>=7"],
     },

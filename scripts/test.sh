@@ -4,7 +4,7 @@ set -euo pipefail
 here="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 bash "$here/scripts/setup.sh"
 cd "$here"
-# DDS isolation for the tests that start ROS 2 nodes (see test/conftest.py for per-test domain ids).
+# DDS isolation for the tests that start ROS 2 nodes (each test picks its own ROS_DOMAIN_ID).
 export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
 export PYOPENGL_PLATFORM="${PYOPENGL_PLATFORM:-osmesa}"
 exec .venv/bin/python -m pytest test -q "$@"

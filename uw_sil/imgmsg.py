@@ -9,7 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["SUPPORTED_ENCODINGS", "image_to_rgb", "rgb_to_image_fields", "compressed_to_rgb", "message_bytes"]
+__all__ = ["SUPPORTED_ENCODINGS", "image_to_rgb", "rgb_to_image_fields", "depth_to_image_fields", "compressed_to_rgb",
+           "message_bytes"]
 
 # encoding -> (channels, order of R, G, B among the channels); mono is replicated.
 _LAYOUT = {
@@ -120,6 +121,36 @@ def rgb_to_image_fields(arr: np.ndarray, encoding: str = "rgb8") -> dict:
         raise ValueError(f"image has no pixels: shape {a.shape}")
     return {"height": int(h), "width": int(w), "encoding": encoding, "is_bigendian": 0, "step": int(w * ch),
             "data": np.ascontiguousarray(a).tobytes()}
+
+
+def depth_to_image_fields(depth: np.ndarray) -> dict:
+    """Fields of a ``sensor_msgs/Image`` holding a depth image in the REP 118 convention.
+
+    Parameters
+    ----------
+    depth : ndarray
+        (H, W) planar depth in metres; ``+inf`` where nothing was hit (as
+        :class:`uw_sil.render.RenderResult` gives it), NaN where unknown.
+
+    Returns
+    -------
+    dict
+        ``height``, ``width``, ``encoding`` (``32FC1``), ``is_bigendian`` (0: the data are little-endian
+        float32 whatever the machine), ``step`` (``4 * W``) and ``data`` (``bytes``).
+
+    References
+    ----------
+    REP 118, Depth Images: 32-bit float metres; ``+Inf`` too far / nothing hit, ``-Inf`` too close, NaN
+    invalid.
+    """
+    d = np.asarray(depth)
+    if d.ndim != 2 or 0 in d.shape:
+        raise ValueError(f"depth must be a non-empty (H, W) array, got shape {d.shape}")
+    if not np.issubdtype(d.dtype, np.floating):
+        raise ValueError(f"depth must be floating point metres, got {d.dtype}")
+    h, w = d.shape
+    return {"height": int(h), "width": int(w), "encoding": "32FC1", "is_bigendian": 0, "step": 4 * int(w),
+            "data": np.ascontiguousarray(d, dtype="<f4").tobytes()}
 
 
 def compressed_to_rgb(msg) -> np.ndarray:

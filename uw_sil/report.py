@@ -29,9 +29,15 @@ def _snapshot_iterations(n_iters: int, count: int = 5) -> list[int]:
     return [int(i) for i in its]
 
 
-def progression_figure(fit, frame: int = 0, count: int = 5):
+def _closest_frame(fit) -> int:
+    """The fit frame where the panel is largest (most to see in a figure)."""
+    return int(np.argmax([f.coverage for f in fit.frames]))
+
+
+def progression_figure(fit, frame: int = None, count: int = 5):
     """Real frame, then the simulation with the best parameters at several iterations."""
     plt = _plt()
+    frame = _closest_frame(fit) if frame is None else frame
     from .backward import BackwardObjective
 
     o = fit.optim
@@ -82,9 +88,10 @@ def convergence_figure(fits: Sequence):
     return fig
 
 
-def residual_figure(fit, frame: int = 0):
+def residual_figure(fit, frame: int = None):
     """real − simulation at the fitted parameters, signed, per channel and as luminance (in 0..1 units)."""
     plt = _plt()
+    frame = _closest_frame(fit) if frame is None else frame
     from .backward import BackwardObjective
 
     obj = BackwardObjective([fit.frames[frame]], fit.space, channels=fit.channels, fog=fit.fog, batch=1,
@@ -95,7 +102,7 @@ def residual_figure(fit, frame: int = 0):
     lim = max(0.05, float(np.percentile(np.abs(res), 99.5)))
     fig, axes = plt.subplots(1, 5, figsize=(17, 3.1))
     axes[0].imshow(np.clip(sim, 0, 1))
-    axes[0].set_title("fitted simulation", fontsize=9)
+    axes[0].set_title(f"fitted simulation, frame #{fit.frames[frame].index}", fontsize=9)
     lum = res @ np.array([0.299, 0.587, 0.114], np.float32)
     for ax, img, name in zip(axes[1:], [lum, res[..., 0], res[..., 1], res[..., 2]], ["luminance", "R", "G", "B"]):
         im = ax.imshow(img, cmap="RdBu_r", vmin=-lim, vmax=lim)

@@ -1,0 +1,422 @@
+"""The ROS 2 nodes: sim_camera and bag_play in-process (one rclpy Context per test), the backward graph
+end to end as `uw-sil launch` subprocesses on a tiny synthetic bag.
+
+Every test that touches DDS uses its own ROS_DOMAIN_ID and ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST.
+"""
+import importlib.util
+import itertools
+import os
+import signal
+import struct
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+rclpy = pytest.importorskip("rclpy", reason="ROS 2 Python packages (the `ros` extra) are not installed")
+
+# rclpy's parameter machinery imports lark, which imports deprecated sre_* modules
+pytestmark = pytest.mark.filterwarnings("ignore:module 'sre_:DeprecationWarning")
+
+from geometry_msgs.msg import PoseStamped  # noqa: E402
+from rcl_interfaces.msg import ParameterType  # noqa: E402
+from rclpy.context import Context  # noqa: E402
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.node import Node  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from rclpy.parameter_client import AsyncParameterClient  # noqa: E402
+from rclpy.qos import DurabilityPolicy, QoSProfile, qos_profile_sensor_data  # noqa: E402
+from sensor_msgs.msg import CameraInfo, Image  # noqa: E402
+from std_msgs.msg import String  # noqa: E402
+from std_srvs.srv import Trigger  # noqa: E402
+
+from uw_sil.backward import fit_bag  # noqa: E402
+from uw_sil.bag import iter_raw, open_bag  # noqa: E402
+from uw_sil.camera import CameraModel  # noqa: E402
+from uw_sil.imgmsg import depth_to_image_fields, image_to_rgb  # noqa: E402
+from uw_sil.params import RGB_NAMES, UnderwaterParams  # noqa: E402
+from uw_sil.scene import facing_pose  # noqa: E402
+from uw_sil.simcam import SimCamera  # noqa: E402
+from uw_sil.synth import synthesize_trial  # noqa: E402
+from uw_sil.transforms import matrix_to_pose  # noqa: E402
+
+SMALL = CameraModel.from_fov(160, 120, 70.0)
+TRUTH = UnderwaterParams(a=(0.40, 0.12, 0.08), b=(0.07, 0.33, 0.43), rho_f=0.10)
+TIMEOUT = 15.0
+MAX_ITER = 30
+_ids = itertools.count()
+
+
+def _domain_id() -> int:
+    """A ROS_DOMAIN_ID (1..232) unlikely to be used by a concurrent test run or another test here."""
+    return 1 + (os.getpid() * 11 + next(_ids)) % 232
+
+
+@pytest.fixture
+def ros(monkeypatch):
+    """A fresh rclpy Context on its own domain; shut down afterwards."""
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=_domain_id())
+    yield ctx
+    ctx.try_shutdown()
+
+
+def spin_until(executor, cond, timeout=TIMEOUT, what="condition"):
+    deadline = time.monotonic() + timeout
+    while not cond():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+        executor.spin_once(timeout_sec=0.05)
+
+
+def wait_future(executor, fut, what="service response"):
+    spin_until(executor, fut.done, what=what)
+    return fut.result()
+
+
+def _stamp_ns(msg) -> int:
+    return msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+
+
+# ------------------------------------------------------------------------------------------ imgmsg
+
+
+def test_depth_to_image_fields_is_rep118_little_endian():
+    d = np.array([[1.5, np.inf], [0.25, np.nan]], dtype=np.float64)
+    f = depth_to_image_fields(d)
+    assert (f["height"], f["width"], f["encoding"], f["is_bigendian"], f["step"]) == (2, 2, "32FC1", 0, 8)
+    back = np.frombuffer(f["data"], dtype="<f4").reshape(2, 2)
+    np.testing.assert_array_equal(back, d.astype(np.float32))   # inf and NaN survive
+    assert f["data"][:8] == struct.pack("<ff", 1.5, np.inf)
+    img = Image(**f)
+    assert bytes(img.data) == f["data"]
+    with pytest.raises(ValueError, match="H, W"):
+        depth_to_image_fields(np.zeros((2, 2, 1)))
+    with pytest.raises(ValueError, match="floating"):
+        depth_to_image_fields(np.zeros((2, 2), np.uint16))
+
+
+# ------------------------------------------------------------------------------------------ sim_camera
+
+
+class Probe(Node):
+    """Publishes poses; collects everything sim_camera publishes, by stamp."""
+
+    TOPICS = {"sim/image_raw": Image, "sim/image_clean": Image, "sim/depth": Image, "sim/mask": Image,
+              "sim/camera_info": CameraInfo}
+
+    def __init__(self, context):
+        super().__init__("probe", context=context)
+        self.pub_pose = self.create_publisher(PoseStamped, "panel/pose", 10)
+        self.got = {t: {} for t in self.TOPICS}
+        self.subs = [self.create_subscription(cls, t, lambda m, t=t: self.got[t].__setitem__(_stamp_ns(m), m),
+                                              qos_profile_sensor_data) for t, cls in self.TOPICS.items()]
+        self.params = AsyncParameterClient(self, "sim_camera")
+
+    def publish_pose(self, T, stamp_ns: int, frame_id="cam_optical"):
+        msg = PoseStamped()
+        msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp_ns, 1_000_000_000)
+        msg.header.frame_id = frame_id
+        pos, quat = matrix_to_pose(T)
+        msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = (float(v) for v in pos)
+        (msg.pose.orientation.x, msg.pose.orientation.y, msg.pose.orientation.z,
+         msg.pose.orientation.w) = (float(v) for v in quat)
+        self.pub_pose.publish(msg)
+
+    def frame(self, stamp_ns: int):
+        if all(stamp_ns in g for g in self.got.values()):
+            return {t: g[stamp_ns] for t, g in self.got.items()}
+        return None
+
+
+def test_sim_camera_renders_poses_and_takes_parameters_live(ros):
+    from uw_sil.nodes.sim_camera import SimCameraNode
+
+    start = UnderwaterParams(a=(0.3, 0.1, 0.05), b=(0.1, 0.3, 0.4), rho_f=0.05)
+    overrides = [Parameter(n, value=v) for n, v in start.as_dict().items()]
+    overrides += [Parameter("width", value=SMALL.width), Parameter("height", value=SMALL.height),
+                  Parameter("hfov_deg", value=70.0)]
+    sim = SimCameraNode(context=ros, parameter_overrides=overrides)
+    probe = Probe(ros)
+    ex = SingleThreadedExecutor(context=ros)
+    ex.add_node(sim)
+    ex.add_node(probe)
+    try:
+        spin_until(ex, lambda: probe.pub_pose.get_subscription_count() > 0
+                   and all(s.get_publisher_count() > 0 for s in probe.subs), what="topic matching")
+        T = facing_pose(1.8, yaw=0.1)
+        probe.publish_pose(T, 1_000_000_123)
+        spin_until(ex, lambda: probe.frame(1_000_000_123) is not None, what="sim topics for the first pose")
+        f1 = probe.frame(1_000_000_123)
+        for m in f1.values():
+            assert m.header.frame_id == "cam_optical"
+        with SimCamera(start, camera=SMALL) as ref:    # an independent renderer with the same parameters
+            want = ref.render(T)
+        img = image_to_rgb(f1["sim/image_raw"])
+        np.testing.assert_array_equal(img, want.image_uint8())
+        d = f1["sim/depth"]
+        assert d.encoding == "32FC1" and (d.width, d.height) == (SMALL.width, SMALL.height)
+        depth = np.frombuffer(bytes(d.data), "<f4").reshape(d.height, d.width)
+        hit = np.isfinite(want.render.depth)
+        assert 0.05 < hit.mean() < 1.0
+        np.testing.assert_array_equal(np.isfinite(depth), hit)
+        np.testing.assert_allclose(depth[hit], want.render.depth[hit], atol=1e-5)
+        assert depth[hit].min() > 1.0 and depth[hit].max() < 3.0   # panel ~1.8 m ahead, seafloor behind
+        mask = f1["sim/mask"]
+        assert mask.encoding == "mono8"
+        np.testing.assert_array_equal(np.frombuffer(bytes(mask.data), np.uint8).reshape(d.height, d.width),
+                                      want.render.labels)
+        info = f1["sim/camera_info"]
+        np.testing.assert_allclose(np.asarray(info.k), SMALL.K.ravel())
+        assert (info.width, info.height) == (SMALL.width, SMALL.height)
+
+        # live re-parameterization through the parameter services
+        assert probe.params.wait_for_services(timeout_sec=TIMEOUT)
+        new = UnderwaterParams(a=(0.8, 0.2, 0.1), b=(0.3, 0.2, 0.1), rho_f=0.2)
+        res = wait_future(ex, probe.params.set_parameters(
+            [Parameter(n, value=v) for n, v in new.as_dict().items()] + [Parameter("fog_mode", value="exp")]))
+        assert all(r.successful for r in res.results), [r.reason for r in res.results]
+        probe.publish_pose(T, 2_000_000_000)
+        spin_until(ex, lambda: probe.frame(2_000_000_000) is not None, what="sim topics for the second pose")
+        img2 = image_to_rgb(probe.frame(2_000_000_000)["sim/image_raw"])
+        assert np.abs(img2.astype(int) - img.astype(int)).mean() > 10
+        with SimCamera(new, camera=SMALL, fog="exp") as ref:
+            np.testing.assert_array_equal(img2, ref.render(T).image_uint8())
+
+        # invalid values are rejected with a reason and change nothing
+        for bad, why in ((Parameter("b_r", value=1.5), "b_r"), (Parameter("fog_mode", value="bogus"), "bogus"),
+                         (Parameter("a_g", value=1), "type")):
+            r = wait_future(ex, probe.params.set_parameters([bad])).results[0]
+            assert not r.successful and why in r.reason, r.reason
+        r = wait_future(ex, probe.params.set_parameters([Parameter("width", value=320)])).results[0]
+        assert not r.successful and "read-only" in r.reason
+        values = wait_future(ex, probe.params.get_parameters(["b_r", "a_g", "fog_mode"])).values
+        assert [values[0].double_value, values[1].double_value, values[2].string_value] == [0.3, 0.2, "exp"]
+        assert sim.sim.params == new and sim.sim.fog == "exp"
+    finally:
+        ex.shutdown()
+        sim.destroy_node()
+        probe.destroy_node()
+
+
+# ------------------------------------------------------------------------------------------ bag_play
+
+
+@pytest.fixture(scope="module")
+def trial(tmp_path_factory):
+    out = tmp_path_factory.mktemp("trial") / "trial.mcap"
+    synthesize_trial(out, n_frames=12, seed=3, params=TRUTH, camera=SMALL, start_m=3.5, end_m=1.2)
+    return out
+
+
+def test_bag_play_replays_with_recorded_timing(ros, trial):
+    from uw_sil.nodes.bag_play import BagPlayNode
+
+    rate = 2.0
+    player = BagPlayNode(context=ros, parameter_overrides=[
+        Parameter("bag", value=str(trial)), Parameter("rate", value=rate), Parameter("start_paused", value=True),
+        Parameter("topics", value=["/camera/image_raw", "/panel/pose"])])
+    listener = Node("listener", context=ros)
+    got = []
+    for topic, cls, qos in (("/camera/image_raw", Image, qos_profile_sensor_data), ("/panel/pose", PoseStamped, 10)):
+        listener.create_subscription(cls, topic, lambda m, t=topic: got.append((t, _stamp_ns(m), time.monotonic())),
+                                     qos)
+    info_sub = listener.create_subscription(CameraInfo, "/camera/camera_info", lambda m: got.append("info"), 10)
+    resume = listener.create_client(Trigger, "/bag_play/resume")
+    ex = SingleThreadedExecutor(context=ros)
+    ex.add_node(player)
+    ex.add_node(listener)
+    try:
+        assert player.topics == ["/camera/image_raw", "/panel/pose"]
+        assert info_sub.get_publisher_count() == 0            # not selected: no publisher
+        spin_until(ex, lambda: all(p.get_subscription_count() > 0 for p in player.publishers_.values()),
+                   what="subscriptions")
+        assert resume.wait_for_service(timeout_sec=TIMEOUT)
+        t_resume = []
+
+        def do_resume():  # from a timer of the listener, while play() serves the executor
+            t_resume.append(time.monotonic())
+            resume.call_async(Trigger.Request())
+            timer.cancel()
+        timer = listener.create_timer(0.4, do_resume)
+        t0 = time.monotonic()
+        assert player.play(ex)
+        spin_until(ex, lambda: len(got) >= 24, timeout=5, what="all messages")
+    finally:
+        ex.shutdown()
+        player.destroy_node()
+        listener.destroy_node()
+    recorded = [(m.topic, m.log_time_ns) for m in iter_raw(trial, ["/camera/image_raw", "/panel/pose"])]
+    assert [(t, s) for t, s, _ in got] == recorded           # all, in order, stamps as recorded
+    assert player.played == 24
+    first = got[0][2]
+    assert first >= t_resume[0] >= t0 + 0.35                  # nothing before ~/resume
+    # paced by the recorded receive times at rate 2 (12 frames 0.1 s apart: 0.55 s)
+    span = got[-1][2] - first
+    assert span == pytest.approx((recorded[-1][1] - recorded[0][1]) / 1e9 / rate, abs=0.15)
+
+
+def test_bag_play_loops_and_publishes_the_bag_clock(ros, trial):
+    from rosgraph_msgs.msg import Clock
+
+    from uw_sil.nodes.bag_play import BagPlayNode
+
+    info = open_bag(trial)
+    player = BagPlayNode(context=ros, parameter_overrides=[
+        Parameter("bag", value=str(trial)), Parameter("rate", value=10.0), Parameter("loop", value=True),
+        Parameter("topics", value=["/panel/pose"]), Parameter("clock_hz", value=50.0)])
+    listener = Node("listener", context=ros)
+    poses, clock = [], []
+
+    def on_pose(m):
+        poses.append(_stamp_ns(m))
+        if len(poses) == 30:      # two and a half passes through the bag: stop like Ctrl-C would
+            ros.try_shutdown()
+    pose_sub = listener.create_subscription(PoseStamped, "/panel/pose", on_pose, 100)
+    listener.create_subscription(Clock, "/clock", lambda m: clock.append(m.clock.sec * 10**9 + m.clock.nanosec), 100)
+    ex = SingleThreadedExecutor(context=ros)
+    ex.add_node(player)
+    ex.add_node(listener)
+    try:
+        spin_until(ex, lambda: pose_sub.get_publisher_count() > 0, what="matching")
+        assert not player.play(ex)                              # interrupted, never ended by itself
+    finally:
+        ex.shutdown()
+        player.destroy_node()
+        listener.destroy_node()
+    stamps = [m.log_time_ns for m in iter_raw(trial, "/panel/pose")]
+    assert poses[:30] == (stamps * 3)[:30]
+    # the bag time: within the bag (plus what passes between its last message and the restart)
+    assert len(clock) >= 5 and all(info.start_ns <= c <= info.end_ns + 100_000_000 for c in clock), clock
+
+
+def test_bag_play_rejects_missing_topics_and_types(ros, trial, tmp_path):
+    from uw_sil.nodes.bag_play import BagPlayNode, message_class
+
+    assert message_class("sensor_msgs/msg/Image") is Image
+    with pytest.raises(ImportError):
+        message_class("no_such_pkg/msg/Thing")
+    with pytest.raises(ImportError):
+        message_class("sensor_msgs/msg/NoSuchMessage")
+    with pytest.raises(ValueError, match="not in bag"):
+        BagPlayNode(context=ros, parameter_overrides=[Parameter("bag", value=str(trial)),
+                                                      Parameter("topics", value=["/nope"])])
+    with pytest.raises(ValueError, match="required"):
+        BagPlayNode(context=ros)
+    with pytest.raises(FileNotFoundError):
+        BagPlayNode(context=ros, parameter_overrides=[Parameter("bag", value=str(tmp_path / "missing.mcap"))])
+
+
+# ------------------------------------------------------------------------------------------ the graph
+
+
+def _launch_env(domain: int) -> dict:
+    env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+               PYOPENGL_PLATFORM="osmesa")
+    env.pop("FASTDDS_DEFAULT_PROFILES_FILE", None)
+    return env
+
+
+def _pump(proc, lines):
+    for line in iter(proc.stdout.readline, ""):
+        lines.append(line)
+
+
+def test_backward_graph_refits_sim_camera_and_stops_on_ctrl_c(trial, tmp_path, monkeypatch):
+    """bag_play -> backward_fit -> sim_camera re-parameterized; then SIGINT ends everything cleanly."""
+    domain = _domain_id()
+    fit_yaml = tmp_path / "fit.yaml"
+    cmd = [sys.executable, "-m", "uw_sil.cli", "launch", "backward", "--bag", str(trial), "--frames", "3",
+           "--stride", "4", "--optimizer", "cmaes", "--max-iter", str(MAX_ITER), "--output-yaml", str(fit_yaml),
+           "--keep-running"]
+    proc = subprocess.Popen(cmd, env=_launch_env(domain), stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True)
+    lines = []
+    reader = threading.Thread(target=_pump, args=(proc, lines), daemon=True)
+    reader.start()
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=domain)
+    node = Node("test_watcher", context=ctx)
+    status = []
+    node.create_subscription(String, "/backward_fit/status", lambda m: status.append(m.data),
+                             QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL))
+    ex = SingleThreadedExecutor(context=ctx)
+    ex.add_node(node)
+    try:
+        spin_until(ex, lambda: any(s.startswith(("done", "failed")) for s in status) or proc.poll() is not None,
+                   timeout=90, what="backward_fit to finish")
+        assert status and status[-1].startswith("done"), "".join(lines) + "\n" + "\n".join(status)
+        assert "re-parameterized" in status[-1]
+        fitted = yaml.safe_load(fit_yaml.read_text())["/**"]["ros__parameters"]
+        client = AsyncParameterClient(node, "sim_camera")
+        assert client.wait_for_services(timeout_sec=TIMEOUT)
+        values = wait_future(ex, client.get_parameters(list(RGB_NAMES) + ["fog_mode"])).values
+        live = {n: v.double_value for n, v in zip(RGB_NAMES, values) if v.type == ParameterType.PARAMETER_DOUBLE}
+        assert live == {n: fitted[n] for n in RGB_NAMES}        # sim_camera runs with exactly the fit
+        assert values[-1].string_value == fitted["fog_mode"] == "exp2"
+        # The node fits exactly what `uw-sil fit` fits offline on the same frames (how close that comes to
+        # the truth is test_backward's subject); and it improved θ over the start of the search.
+        offline = fit_bag(trial, k=3, stride=4, method="cmaes", max_iter=MAX_ITER, seed=0)
+        fitting = next(s for s in status if s.startswith("fitting"))
+        for f in offline.frames:
+            assert f"#{f.index} ({f.range_median:.2f} m" in fitting, fitting
+        np.testing.assert_allclose(UnderwaterParams.from_dict(live).as_vector(), offline.params.as_vector(),
+                                   rtol=1e-9, err_msg="the node's fit differs from the offline fit")
+        theta = status[-1].split("theta ")[1].split(" in ")[0].split(" -> ")
+        assert float(theta[1]) == pytest.approx(offline.theta_best, abs=1e-4) and float(theta[1]) > float(theta[0])
+        # Ctrl-C: the launcher forwards SIGINT and every node ends cleanly
+        assert proc.poll() is None, "the graph ended although --keep-running was given"
+        proc.send_signal(signal.SIGINT)
+        rc = proc.wait(timeout=30)
+        reader.join(timeout=5)
+    finally:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGINT)
+            proc.wait(timeout=30)
+        ex.shutdown()
+        node.destroy_node()
+        ctx.try_shutdown()
+    text = "".join(lines)
+    assert rc == 0, text
+    assert "SIGINT received" in text and "all nodes ended cleanly" in text, text
+    pids = [int(line.split("(pid ")[1].split(")")[0]) for line in text.splitlines() if "(pid " in line]
+    assert len(pids) == 3
+    for pid in pids:
+        assert not Path(f"/proc/{pid}").exists(), f"node process {pid} outlived the launcher"
+    assert "bag_play exited with status 0" in text     # the bag ended before the graph did
+
+
+def test_backward_graph_with_a_bag_ends_by_itself(trial, tmp_path):
+    """Asked for more frames than the bag has: the frames there are fitted once the bag has ended, then
+    backward_fit exits, which ends the graph (status 0, parameters file written)."""
+    fit_yaml = tmp_path / "fit.yaml"
+    cmd = [sys.executable, "-m", "uw_sil.cli", "launch", "backward", "--bag", str(trial), "--frames", "10",
+           "--stride", "4", "--optimizer", "cmaes", "--max-iter", "3", "--output-yaml", str(fit_yaml), "--rate", "2"]
+    out = subprocess.run(cmd, env=_launch_env(_domain_id()), capture_output=True, text=True, timeout=90)
+    text = out.stdout + out.stderr
+    assert out.returncode == 0, text
+    assert "fitting the 3 of 10 frames taken so far" in text, text
+    assert "required node backward_fit ended: stopping sim_camera" in text
+    assert "all nodes ended cleanly" in text
+    params = yaml.safe_load(fit_yaml.read_text())["/**"]["ros__parameters"]
+    assert set(params) == set(RGB_NAMES) | {"fog_mode"}
+
+
+def test_play_command_ends_with_the_bag(trial):
+    """`uw-sil play` replays the bag and returns when it is done (no subscriber needed)."""
+    t0 = time.monotonic()
+    out = subprocess.run([sys.executable, "-m", "uw_sil.cli", "play", str(trial), "--rate", "4"],
+                         env=_launch_env(_domain_id()), capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stdout + out.stderr
+    # 12 frames x (image, camera_info, pose, tf); /tf is skipped (with a warning) when tf2_msgs is missing
+    tf = importlib.util.find_spec("tf2_msgs") is not None
+    assert f"done: played {48 if tf else 36} messages" in out.stdout
+    assert tf or "skipping /tf" in out.stdout
+    assert time.monotonic() - t0 < 30

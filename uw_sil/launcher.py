@@ -1,0 +1,267 @@
+"""Start a node graph of :mod:`uw_sil.graph` as processes: ``ros2 launch`` for pip installs.
+
+``launch``/``launch_ros`` are not on PyPI, so ``uw-sil launch GRAPH`` does their job for this package's
+graphs: one process per node (``python -m uw_sil.nodes.<name> --ros-args ...``), each output line
+prefixed with ``[node]``, and the environment every node needs. Nothing here imports ROS.
+
+Behaviour
+---------
+* ``FASTDDS_DEFAULT_PROFILES_FILE`` points at the package's ``config/fastdds_shm.xml`` (shared memory
+  plus loopback UDP: Fast DDS's defaults lose large images between processes), unless the caller's
+  environment already names a profile, which is then kept.
+* Ctrl-C / SIGTERM is forwarded once as SIGINT to every node (each runs in its own process group,
+  so a terminal's Ctrl-C does not reach the nodes twice); nodes get ``stop_timeout`` seconds to
+  exit, then SIGTERM, and SIGKILL only as the last resort (that leaves Fast DDS shared-memory
+  segments in /dev/shm, and is reported). A second Ctrl-C sends SIGTERM at once, a third SIGKILL.
+* A node marked ``required`` (:attr:`uw_sil.graph.NodeSpec.required`) ends the graph when it exits,
+  like ``on_exit=Shutdown()`` in a launch file: in the backward graph with a bag, ``backward_fit``
+  exits once the fit is done, so ``uw-sil launch backward --bag trial.mcap`` returns by itself.
+  Without a bag (live camera) or with ``--keep-running`` everything runs until Ctrl-C, as with
+  ``ros2 launch``.
+* A node that exits with an error (non-zero status, or a signal the launcher did not send) stops
+  the whole graph and the launcher exits with status 1. A node ending normally (``bag_play`` at the
+  end of the bag) ends only itself.
+* Exit status: 0 when the graph ended normally or was stopped cleanly by Ctrl-C/SIGTERM, 1 when a
+  node failed or had to be killed.
+* Children get ``PR_SET_PDEATHSIG`` (Linux): if the launcher itself is killed, they receive SIGTERM
+  and shut down instead of running on orphaned.
+"""
+from __future__ import annotations
+
+import ctypes
+import os
+import selectors
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional, TextIO
+
+from . import graph as _graph
+
+__all__ = ["launch", "graph_environment", "add_commands", "NodeProcess"]
+
+#: Seconds a node gets to exit after SIGINT before it is sent SIGTERM (and as long again before SIGKILL).
+STOP_TIMEOUT = 10.0
+
+
+@dataclass
+class NodeProcess:
+    spec: _graph.NodeSpec
+    popen: subprocess.Popen
+    buffer: bytes = b""
+    returncode: Optional[int] = None
+    signalled: bool = False   # the launcher sent it a signal: a signal exit is then not a failure
+
+    @property
+    def failed(self) -> bool:
+        rc = self.returncode
+        if rc is None or rc == 0:
+            return False
+        return not (self.signalled and rc in (-signal.SIGINT, -signal.SIGTERM))
+
+
+def graph_environment(base: Optional[dict] = None) -> dict:
+    """Environment of the node processes: ``base`` (default ``os.environ``) plus the Fast DDS profile."""
+    env = dict(os.environ if base is None else base)
+    env.setdefault("FASTDDS_DEFAULT_PROFILES_FILE", str(_graph.share_file("config", "fastdds_shm.xml")))
+    env["PYTHONUNBUFFERED"] = "1"              # node output reaches the terminal line by line
+    env.setdefault("RCUTILS_LOGGING_BUFFERED_STREAM", "0")
+    return env
+
+
+def _die_with_parent():
+    """In the child before exec: own process group, SIGTERM when the launcher dies (Linux)."""
+    os.setpgid(0, 0)
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, signal.SIGTERM)          # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):          # not Linux: the process group still isolates Ctrl-C
+        pass
+
+
+def _emit(out: TextIO, name: str, data: bytes, width: int):
+    for line in data.decode(errors="replace").splitlines():
+        out.write(f"[{name:<{width}}] {line}\n")
+    out.flush()
+
+
+def launch(specs: list, env: Optional[dict] = None, out: TextIO = sys.stdout,
+           stop_timeout: float = STOP_TIMEOUT, python: str = sys.executable) -> int:
+    """Run the nodes of ``specs`` until the graph ends; return the exit status (see module docstring)."""
+    if not specs:
+        raise ValueError("empty graph: nothing to launch")
+    names = [s.name for s in specs]
+    if len(set(names)) != len(names):
+        raise ValueError(f"node names must be unique, got {names}")
+    env = graph_environment(env)
+    width = max(len(n) for n in names)
+    out.write(f"[launch] FASTDDS_DEFAULT_PROFILES_FILE={env['FASTDDS_DEFAULT_PROFILES_FILE']}\n")
+
+    stop_requested: list = []
+
+    def on_signal(signum, _frame):
+        stop_requested.append(signum)
+
+    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    procs: list = []
+    sel = selectors.DefaultSelector()
+    try:
+        for spec in specs:
+            cmd = _graph.command_line(spec, python=python)
+            p = subprocess.Popen(cmd, env=env, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+                                 stderr=subprocess.STDOUT, preexec_fn=_die_with_parent)
+            np_ = NodeProcess(spec, p)
+            procs.append(np_)
+            sel.register(p.stdout, selectors.EVENT_READ, np_)
+            out.write(f"[launch] started {spec.name} (pid {p.pid}): {' '.join(cmd[1:])}\n")
+        out.flush()
+        status = _supervise(procs, sel, stop_requested, out, width, stop_timeout)
+    finally:
+        # Whatever happened (even an exception here), no node outlives the launcher.
+        for np_ in procs:
+            if np_.popen.poll() is None:
+                np_.popen.kill()
+                np_.popen.wait()
+        sel.close()
+        for s, h in previous.items():
+            signal.signal(s, h)
+    return status
+
+
+def _supervise(procs, sel, stop_requested, out, width, stop_timeout) -> int:
+    stopping_since = None
+    reason = None
+    escalated = 0
+    signals_at_stop = 0
+    while True:
+        for key, _ in sel.select(timeout=0.1):
+            np_ = key.data
+            chunk = os.read(key.fileobj.fileno(), 65536)
+            if not chunk:
+                sel.unregister(key.fileobj)
+                continue
+            data = np_.buffer + chunk
+            lines, _, np_.buffer = data.rpartition(b"\n")
+            if lines:
+                _emit(out, np_.spec.name, lines, width)
+        for np_ in procs:
+            if np_.returncode is None and np_.popen.poll() is not None:
+                np_.returncode = np_.popen.returncode
+                _drain(sel, np_, out, width)
+                how = f"exited with status {np_.returncode}" if np_.returncode >= 0 else \
+                    f"was killed by {signal.Signals(-np_.returncode).name}"
+                out.write(f"[launch] {np_.spec.name} {how}{' (FAILED)' if np_.failed else ''}\n")
+                if stopping_since is None:
+                    if np_.failed:
+                        reason = f"{np_.spec.name} failed"
+                    elif np_.spec.required:
+                        reason = f"required node {np_.spec.name} ended"
+        if stopping_since is None and stop_requested:
+            reason = f"{signal.Signals(stop_requested[0]).name} received"
+        running = [p for p in procs if p.returncode is None]
+        if not running:
+            break
+        now = time.monotonic()
+        if stopping_since is None and reason is not None:
+            out.write(f"[launch] {reason}: stopping {', '.join(p.spec.name for p in running)}\n")
+            _signal_all(running, signal.SIGINT)
+            stopping_since = now
+            signals_at_stop = len(stop_requested)
+        elif stopping_since is not None and escalated < 2 and (
+                now - stopping_since > stop_timeout * (escalated + 1)
+                or len(stop_requested) > signals_at_stop + escalated):  # at once on another Ctrl-C
+            sig = signal.SIGTERM if escalated == 0 else signal.SIGKILL
+            out.write(f"[launch] {', '.join(p.spec.name for p in running)} still running after "
+                      f"{now - stopping_since:.1f} s: sending {sig.name}"
+                      + (" (leaves Fast DDS segments in /dev/shm)" if sig == signal.SIGKILL else "") + "\n")
+            _signal_all(running, sig)
+            escalated += 1
+        out.flush()
+    failed = [p.spec.name for p in procs if p.failed]
+    out.write(f"[launch] done: {'FAILED: ' + ', '.join(failed) if failed else 'all nodes ended cleanly'}\n")
+    out.flush()
+    return 1 if failed else 0
+
+
+def _drain(sel, np_, out, width):
+    """Print what a node wrote before exiting."""
+    f = np_.popen.stdout
+    try:
+        sel.unregister(f)
+    except KeyError:
+        pass
+    rest = np_.buffer + f.read()
+    np_.buffer = b""
+    if rest:
+        _emit(out, np_.spec.name, rest, width)
+
+
+def _signal_all(procs, sig):
+    for np_ in procs:
+        try:
+            np_.popen.send_signal(sig)
+            np_.signalled = True
+        except ProcessLookupError:
+            pass
+
+
+# ------------------------------------------------------------------------------------------ CLI
+
+
+def cmd_launch(args) -> int:
+    build = _graph.GRAPHS[args.graph]
+    absolute = lambda p: str(Path(p).resolve()) if p else p  # noqa: E731  (nodes log absolute paths)
+    specs = build(sim_params=absolute(args.sim_params), bag=absolute(args.bag),
+                  output_yaml=absolute(args.output_yaml) or "",
+                  frames=args.frames, optimizer=args.optimizer, rate=args.rate, loop=args.loop,
+                  max_iter=args.max_iter, stride=args.stride, keep_running=args.keep_running)
+    return launch(specs)
+
+
+def cmd_play(args) -> int:
+    params = {"bag": str(args.bag), "rate": float(args.rate), "loop": bool(args.loop)}
+    if args.topics:
+        params["topics"] = list(args.topics)
+    if args.clock:
+        params["clock_hz"] = float(args.clock)
+    return launch([_graph.NodeSpec("bag_play", "bag_play", parameters=params, required=True)])
+
+
+def _positive(text: str) -> float:
+    v = float(text)
+    if not v > 0:
+        import argparse
+
+        raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
+    return v
+
+
+def add_commands(subparsers) -> None:
+    """Register ``launch`` and ``play`` on the ``uw-sil`` argument parser."""
+    la = subparsers.add_parser("launch", help="start a ROS 2 node graph (what `ros2 launch` does)",
+                               description="Start the nodes of a uw_sil graph as processes, as `ros2 launch` would "
+                                           "(launch is not on PyPI). Ctrl-C stops them all.")
+    la.add_argument("graph", choices=sorted(_graph.GRAPHS))
+    la.add_argument("--bag", help="replay this field trial into the graph (then the graph ends after the fit)")
+    la.add_argument("--output-yaml", help="write the fitted parameters here (ROS 2 parameters file)")
+    la.add_argument("--frames", type=int, default=3, help="K: frames to fit (default 3)")
+    la.add_argument("--stride", type=int, help="consider every n-th frame (spreads the K frames over more ranges)")
+    la.add_argument("--optimizer", choices=["pso", "cmaes"], default="pso")
+    la.add_argument("--max-iter", type=int, help="optimizer iterations (default: the node's)")
+    la.add_argument("--rate", type=_positive, default=1.0, help="bag replay rate")
+    la.add_argument("--loop", action="store_true", help="replay the bag in a loop")
+    la.add_argument("--sim-params", help="sim_camera parameters YAML (default config/sim_camera.yaml)")
+    la.add_argument("--keep-running", action="store_true",
+                    help="with --bag: keep the graph running after the fit, until Ctrl-C")
+    la.set_defaults(func=cmd_launch)
+
+    pl = subparsers.add_parser("play", help="replay a bag with its recorded timing (what `ros2 bag play` does)")
+    pl.add_argument("bag")
+    pl.add_argument("--rate", type=_positive, default=1.0)
+    pl.add_argument("--loop", action="store_true")
+    pl.add_argument("--topics", nargs="+", help="only these topics")
+    pl.add_argument("--clock", type=_positive, help="publish /clock at this rate [Hz]")
+    pl.set_defaults(func=cmd_play)

@@ -1,0 +1,253 @@
+"""``backward_fit`` node: at dive start, fit the simulator's 7 parameters to the first real frames and
+re-parameterize the ``sim_camera`` node through its parameter services.
+
+Subscribes ``camera/image_raw`` (Image), ``camera/camera_info`` (CameraInfo), ``panel/pose``
+(PoseStamped), paired by stamp (:class:`uw_sil.stamps.StampSynchronizer`). The first ``frames``
+usable frames (:class:`uw_sil.backward.FrameSelector`) are fitted in a worker thread
+(:func:`uw_sil.backward.fit_frames`); the result is sent atomically to
+``<sim_node>/set_parameters_atomically`` and optionally written as a parameters YAML.
+
+Publishes ``~/status`` (std_msgs/String, transient local: ``collecting ...``, ``fitting ...``, then
+``done: ...`` or ``failed: ...``) and ``~/theta`` (std_msgs/Float64, best θ per iteration). Service
+``~/start`` (std_srvs/Trigger) starts a new collection and fit. With ``idle_timeout`` > 0, the frames
+taken so far are fitted when no frame has arrived for that many seconds (a replayed bag has ended).
+With ``exit_when_done`` the node exits after the fit (status 0 when done, 1 when failed): an offline
+replay graph ends with it.
+"""
+from __future__ import annotations
+
+import inspect
+import sys
+import threading
+import time
+
+import rclpy
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.task import Future
+from rclpy.parameter import Parameter
+from rclpy.parameter_client import AsyncParameterClient
+from rclpy.qos import DurabilityPolicy, QoSProfile, qos_profile_sensor_data
+from geometry_msgs.msg import PoseStamped
+from sensor_msgs.msg import CameraInfo, Image
+from std_msgs.msg import Float64, String
+from std_srvs.srv import Trigger
+
+from ..backward import FrameSelector, fit_frames, write_params_yaml
+from ..bag import Sample
+from ..camera import CameraModel
+from ..imgmsg import image_to_rgb
+from ..stamps import StampSynchronizer
+from ..transforms import pose_to_matrix
+
+
+def _defaults(fn) -> dict:
+    return {n: p.default for n, p in inspect.signature(fn).parameters.items() if p.default is not p.empty}
+
+
+def _stamp_ns(header) -> int:
+    return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
+
+
+class BackwardFitNode(Node):
+    def __init__(self, **kwargs):
+        super().__init__("backward_fit", **kwargs)
+        # Defaults are the core's (uw-sil fit uses the same), so the node and the CLI cannot drift apart.
+        sel, fit = _defaults(FrameSelector), _defaults(fit_frames)
+        for name, default in (("frames", sel["k"]), ("stride", sel["stride"]), ("min_coverage", sel["min_coverage"]),
+                              ("max_scan", sel["max_scan"]), ("optimizer", fit["method"]),
+                              ("color_model", fit["color_model"]), ("channels", fit["channels"]),
+                              ("fog_mode", fit["fog"]), ("seed", fit["seed"]),
+                              ("max_iter", 0),  # 0: the optimizer's own default
+                              ("sim_node", "sim_camera"), ("output_yaml", ""), ("max_dt", 0.05), ("auto_start", True),
+                              ("model_path", ""), ("exit_when_done", False), ("idle_timeout", 0.0)):
+            self.declare_parameter(name, default)
+        latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self.pub_status = self.create_publisher(String, "~/status", latched)
+        self.pub_theta = self.create_publisher(Float64, "~/theta", 10)
+        self.sim_params = AsyncParameterClient(self, self.get_parameter("sim_node").value)
+        from ..render import Renderer
+
+        self.renderer = Renderer(self.get_parameter("model_path").value or None)
+        self._lock = threading.Lock()
+        self.selector = None
+        self.fit_thread = None
+        self.result = None
+        self.finished = Future()   # result: True when done, False when failed (for exit_when_done)
+        # streams: 0 image (primary), 1 camera_info (any age: often latched or slow), 2 pose (max_dt)
+        self.sync = StampSynchronizer(3, max_dt=[None, self.get_parameter("max_dt").value])
+        self.create_subscription(Image, "camera/image_raw", lambda m: self._add(0, m), qos_profile_sensor_data)
+        self.create_subscription(CameraInfo, "camera/camera_info", lambda m: self._add(1, m), qos_profile_sensor_data)
+        self.create_subscription(PoseStamped, "panel/pose", lambda m: self._add(2, m), 10)
+        self.create_service(Trigger, "~/start", self._on_start)
+        self._last_progress = None
+        self._last_sample = None   # monotonic time of the last frame offered to the selector
+        self.create_timer(2.0, self._log_progress)
+        if self.get_parameter("idle_timeout").value > 0:
+            self.create_timer(0.5, self._check_idle)
+        if self.get_parameter("auto_start").value:
+            self._start()
+        else:
+            self._status("idle: call ~/start to fit")
+
+    def _status(self, text: str):
+        self.get_logger().info(text)
+        if self.context.ok():   # the fit thread may report after Ctrl-C
+            self.pub_status.publish(String(data=text))
+
+    def _finish(self, ok: bool, text: str):
+        self._status(text)
+        if not self.finished.done():
+            self.finished.set_result(ok)
+
+    def _start(self) -> bool:
+        with self._lock:
+            if self.fit_thread is not None and self.fit_thread.is_alive():
+                return False
+            g = lambda n: self.get_parameter(n).value  # noqa: E731
+            self.selector = FrameSelector(self.renderer, k=g("frames"), min_coverage=g("min_coverage"),
+                                          max_scan=g("max_scan"), stride=g("stride"))
+            self._last_sample = None
+        self._status(f"collecting {self.selector.k} frames with the panel in view")
+        return True
+
+    def _log_progress(self):
+        sel, st = self.selector, self.sync.stats
+        if sel is None or sel.done:
+            return
+        text = (f"collecting: {len(sel.frames)}/{sel.k} frames taken of {sel.scanned} looked at; received "
+                f"{st.received[0]} images, {st.received[1]} camera_info, {st.received[2]} poses; "
+                f"{st.matched} matched, {st.dropped} images without partner")
+        if text != self._last_progress:
+            self._last_progress = text
+            self.get_logger().info(text)
+
+    def _check_idle(self):
+        """With ``idle_timeout``: the input has stopped (end of a bag) before ``frames`` were taken."""
+        sel = self.selector
+        if sel is None or sel.done or self._last_sample is None:
+            return
+        if time.monotonic() - self._last_sample >= self.get_parameter("idle_timeout").value:
+            self.get_logger().warning(f"no frame for {self.get_parameter('idle_timeout').value:g} s: fitting the "
+                                      f"{len(sel.frames)} of {sel.k} frames taken so far")
+            self._fit_selection(sel)
+
+    def _on_start(self, _req, resp):
+        resp.success = self._start()
+        resp.message = "collecting frames" if resp.success else "a fit is running"
+        return resp
+
+    def _add(self, stream: int, msg):
+        for match in self.sync.add(stream, _stamp_ns(msg.header), msg):
+            self._offer(match)
+
+    def _offer(self, match):
+        sel = self.selector
+        if sel is None or sel.done:
+            return
+        img, info, pose = match.items
+        p, q = pose.pose.position, pose.pose.orientation
+        try:
+            sample = Sample(stamp_ns=match.stamp_ns, image=image_to_rgb(img), camera=CameraModel.from_camera_info(info),
+                            pose=pose_to_matrix([p.x, p.y, p.z], [q.x, q.y, q.z, q.w]), frame_id=img.header.frame_id)
+            sel.offer(sample)
+        except ValueError as e:
+            self.get_logger().error(f"frame skipped: {e}", throttle_duration_sec=5.0)
+            return
+        finally:
+            self._last_sample = time.monotonic()
+        if sel.done:
+            self._fit_selection(sel)
+
+    def _fit_selection(self, sel):
+        self.selector = None
+        try:
+            selection = sel.result()
+        except ValueError as e:
+            self._finish(False, f"failed: {e}")
+            return
+        self.fit_thread = threading.Thread(target=self._fit, args=(selection,), daemon=True)
+        self.fit_thread.start()
+
+    def _fit(self, selection):
+        g = lambda n: self.get_parameter(n).value  # noqa: E731
+        frames = ", ".join(f"#{f.index} ({f.range_median:.2f} m, {100 * f.coverage:.0f}% panel)"
+                           for f in selection.frames)
+        self._status(f"fitting {len(selection.frames)} frames with {g('optimizer')}: {frames} ...")
+        for index, reason in selection.skipped:
+            self.get_logger().info(f"frame #{index} skipped: {reason}")
+
+        def on_iteration(it, _x, best):
+            if not self.context.ok():
+                return True  # shutting down: stop the optimizer
+            self.pub_theta.publish(Float64(data=float(best)))
+
+        try:
+            options = {"max_iter": g("max_iter")} if g("max_iter") > 0 else {}
+            fit = fit_frames(selection.frames, method=g("optimizer"), color_model=g("color_model"),
+                             channels=g("channels"), fog=g("fog_mode"), seed=g("seed"), callback=on_iteration,
+                             skipped=selection.skipped, **options)
+            if not self.context.ok():
+                return  # interrupted: the partial result is not written anywhere
+            self.result = fit
+            if g("output_yaml"):
+                write_params_yaml(g("output_yaml"), fit.params, fog=g("fog_mode"))
+        except Exception as e:  # report, never die silently in a thread
+            self._finish(False, f"failed: {type(e).__name__}: {e}")
+            return
+        summary = f"theta {fit.theta_start:.4f} -> {fit.theta_best:.4f} in {fit.wall_time_s:.1f} s"
+        values = [Parameter(n, value=float(v)) for n, v in fit.params.as_dict().items()]
+        values.append(Parameter("fog_mode", value=g("fog_mode")))
+        sim = g("sim_node")
+        if not self.sim_params.wait_for_services(timeout_sec=10.0):
+            self._finish(False, f"failed: {summary}, but the parameter services of {sim} are not available")
+            return
+
+        def on_response(f):
+            try:
+                res = f.result().result
+            except Exception as e:  # the service call itself failed
+                self._finish(False, f"failed: {summary}, but setting the parameters of {sim} failed: {e}")
+                return
+            if res.successful:
+                self._finish(True, f"done: {summary}; {sim} re-parameterized")
+            else:
+                self._finish(False, f"failed: {summary}, but {sim} rejected the parameters: {res.reason}")
+
+        self.sim_params.set_parameters_atomically(values).add_done_callback(on_response)
+
+    def destroy_node(self):
+        self.renderer.close()
+        super().destroy_node()
+
+
+def main(args=None):
+    rclpy.init(args=args)
+    node = None
+    code = 0
+    try:
+        node = BackwardFitNode()
+        # Single-threaded on purpose: the OpenGL context of the renderer belongs to this thread.
+        # The fit itself runs in a worker thread and needs no rendering.
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        if node.get_parameter("exit_when_done").value:
+            executor.spin_until_future_complete(node.finished)
+            code = 0 if not node.finished.done() or node.finished.result() else 1
+        else:
+            executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except Exception:
+        if rclpy.ok():
+            raise
+        # Ctrl-C during start-up shut the context down under the constructor: not an error
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return code
+
+
+if __name__ == "__main__":
+    sys.exit(main())
