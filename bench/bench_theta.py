@@ -32,7 +32,7 @@ from scipy.ndimage import gaussian_filter
 from uw_sil.fsim import fsim
 from uw_sil.theta import ThetaReference
 
-DATA = Path("/work/shared/data")
+DATA = Path(os.environ.get("UW_SIL_SHARED_DATA") or Path(__file__).resolve().parents[2] / "shared" / "data")
 REAL = DATA / "real_underwater" / "suim_test" / "images" / "f_r_1965_.jpg"
 N = 20
 REPEATS = 5

@@ -7,6 +7,7 @@ from PIL import Image  # Pillow comes with matplotlib (an install requirement)
 from scipy.ndimage import gaussian_filter
 from scipy.signal import convolve2d
 
+from datapaths import SHARED_DATA
 from uw_sil.fsim import (
     FSIMReference,
     _box_downsample,
@@ -17,7 +18,7 @@ from uw_sil.fsim import (
     phase_congruency,
 )
 
-DATA = Path("/work/shared/data")
+DATA = SHARED_DATA
 IQA = DATA / "iqa_pairs"
 UW = DATA / "real_underwater"
 

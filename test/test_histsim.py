@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from datapaths import SHARED_DATA
 from uw_sil.histsim import (
     DEFAULT_BINS,
     HistogramReference,
@@ -14,7 +15,7 @@ from uw_sil.histsim import (
     rgb_to_hsv,
 )
 
-UW = Path("/work/shared/data/real_underwater")
+UW = SHARED_DATA / "real_underwater"
 
 
 # ---------------------------------------------------------------------------------------------

@@ -6,11 +6,12 @@ import pytest
 from PIL import Image
 from scipy.ndimage import gaussian_filter
 
+from datapaths import SHARED_DATA
 from uw_sil.fsim import fsim
 from uw_sil.histsim import hsv_histogram_similarity
 from uw_sil.theta import ThetaReference, ThetaScores, mean_theta
 
-UW = Path("/work/shared/data/real_underwater")
+UW = SHARED_DATA / "real_underwater"
 
 
 def _img(name):
