@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import yaml
 
-from uw_sil.backward import (BackwardObjective, fit_bag, fit_frames, select_frames, write_params_yaml)
+from uw_sil.backward import (BackwardObjective, fit_frames, linear_start, select_frames, write_params_yaml)
 from uw_sil.bag import read_samples
 from uw_sil.camera import CameraModel
 from uw_sil.params import ParamSpace, UnderwaterParams
@@ -51,9 +51,16 @@ def test_objective_is_maximal_near_truth(frames):
     assert np.all(th[0] > th[1:])
 
 
+def test_linear_start_is_close_on_the_exact_model(frames):
+    x0 = linear_start(frames, ParamSpace("rgb"))
+    np.testing.assert_allclose(x0[:3], TRUTH.a, rtol=0.08)
+    np.testing.assert_allclose(x0[3:6], TRUTH.b, atol=0.01)
+    assert x0[6] == pytest.approx(TRUTH.rho_f, rel=0.25)
+
+
 def test_cmaes_recovers_parameters(frames):
-    # three ranges (3.5, 2.4, 1.2 m) separate fog from attenuation; ~100 iterations to converge
-    fit = fit_frames(frames, method="cmaes", seed=1, max_iter=100)
+    # three ranges (3.5, 2.4, 1.2 m) separate fog from attenuation
+    fit = fit_frames(frames, method="cmaes", seed=1, max_iter=25)
     got, want = fit.params.as_vector(), TRUTH.as_vector()
     np.testing.assert_allclose(got[:3], want[:3], rtol=0.05)       # attenuation within 5 %
     np.testing.assert_allclose(got[3:6], want[3:6], atol=0.01)     # background within 0.01

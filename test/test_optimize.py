@@ -393,3 +393,16 @@ def test_to_dict_is_json():
     assert d["history_best_f"] == r.history_best_f and d["evals_to_target"] is None
     assert "evaluations" not in r.to_dict(include_evaluations=False)
     assert math.isclose(d["f_best"], r.f_best)
+
+
+def test_cmaes_evaluates_x0_first_so_a_good_start_is_never_lost():
+    lo, hi = np.zeros(3), np.ones(3)
+    x0 = np.array([0.3, 0.6, 0.2])
+
+    def f(X):
+        return -np.sum((X - x0) ** 2, axis=1)
+
+    res = optimize(f, lo, hi, method="cmaes", seed=4, max_iter=2, x0=x0, sigma0=0.3)
+    first = res.evaluations.x[res.evaluations.iteration == 0]
+    assert np.any(np.all(np.isclose(first, x0), axis=1))
+    assert res.f_best == pytest.approx(0.0, abs=1e-12)

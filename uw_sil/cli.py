@@ -131,6 +131,7 @@ def cmd_fit(args) -> int:
         fits.append(fit_bag(args.bag, k=args.frames, stride=args.stride, min_coverage=args.min_coverage,
                             method=m, color_model=args.color_model, channels=args.channels, fog=args.fog,
                             hist_pixels=args.hist_pixels, sim_noise=_sim_noise(args.sim_noise),
+                            x0=None if args.start == "centre" else args.start,
                             seed=args.seed, progress=True, **opts))
     fit = fits[0]
     for i, reason in fit.skipped:
@@ -218,6 +219,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="camera noise added to simulated candidates: estimate (from the real water), none, "
                         "or sigma in grey levels")
     f.add_argument("--fog", choices=["exp2", "exp", "none"], default="exp2")
+    f.add_argument("--start", choices=["linear", "water", "centre"], default="linear",
+                   help="optimizer start: least-squares estimate of Eq. 1 (default), background from the "
+                        "water only, or the centre of the bounds (the paper)")
     f.add_argument("--max-iter", type=int, default=None)
     f.add_argument("--seed", type=int, default=0)
     f.add_argument("--out", default="fit.yaml", help="ROS 2 parameters file for the sim camera node")

@@ -626,6 +626,10 @@ def _run_cmaes(rec: _Recorder, seed, popsize, max_iter, opts, u0):
     inopts.update(opts["cma_options"])
     mean0 = np.full(d, 0.5) if u0 is None else u0[0]
     es = cma.CMAEvolutionStrategy(mean0, opts["sigma0"], inopts)
+    if u0 is not None:
+        # The mean itself is never sampled; inject it so that the first generation evaluates x0
+        # (a good start must not be lost: the result is never worse than x0).
+        es.inject([u0[0]], force=True)
     while True:
         sols = es.ask()
         f = rec.evaluate(np.array(sols, dtype=float))
@@ -713,7 +717,8 @@ def optimize(
     x0 : array_like, optional
         Starting point(s) in original units, within the bounds. PSO: shape (d,) or (k, d) with
         ``k <= swarm_size``, replacing the first random particles of the initial swarm. CMA-ES:
-        shape (d,), the initial mean (default: the centre of the box).
+        shape (d,), the initial mean (default: the centre of the box), also evaluated in the first
+        generation (injected), so the result is never worse than x0.
     **method_options
         PSO: ``minstep`` and ``minfunc`` (pyswarm's stopping thresholds, default 1e-8, on the
         normalized box and on the objective), ``patience`` (stop after that many iterations
