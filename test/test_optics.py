@@ -75,6 +75,9 @@ def test_batch_equals_one_at_a_time():
     buf = np.empty_like(batch)
     assert prep(ps, out=buf) is buf
     np.testing.assert_array_equal(buf, batch)
+    one = np.empty_like(batch[0])
+    prep(ps[2], out=one)
+    np.testing.assert_array_equal(one, batch[2])
 
 
 def test_transmission_and_fog_helpers():

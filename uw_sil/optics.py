@@ -135,6 +135,8 @@ class PreparedRender:
         h, w, _ = self.shape
         if out is None:
             out = np.empty((p.shape[0], h, w, 3), dtype=np.float32)
+        elif single and out.ndim == 3:
+            out = out[None]                             # a view: results land in the caller's array
         t = np.empty((h, w), dtype=np.float32)
         fz = np.empty((h, w), dtype=np.float32)
         for k, (a_r, a_g, a_b, b_r, b_g, b_b, rho) in enumerate(p):
