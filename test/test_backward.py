@@ -1,5 +1,4 @@
 """Backward optimization end to end on small synthetic trials where the model is exactly right."""
-import json
 
 import numpy as np
 import pytest

@@ -1,5 +1,4 @@
 """FSIM / FSIMc: MATLAB reference values, MATLAB conventions, properties and bad input."""
-from pathlib import Path
 
 import numpy as np
 import pytest

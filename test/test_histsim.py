@@ -1,5 +1,4 @@
 """theta_2: Bhattacharyya distance, HSV conventions, constructed histograms, bad input."""
-from pathlib import Path
 
 import cv2
 import numpy as np

@@ -1,5 +1,4 @@
 """theta = (FSIMc + theta_2) / 2 against cached references, batches and K frames."""
-from pathlib import Path
 
 import numpy as np
 import pytest

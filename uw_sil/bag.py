@@ -415,18 +415,9 @@ def _raw_stream(layout: _Layout, topics, report: ReadReport, types: _Types | Non
                 log.warning("%s is cut off or damaged: read %d complete messages, %d of %d bytes unreadable (%s)",
                             f, sum(r.messages.values()), r.bytes_unreadable, r.size, "; ".join(r.errors))
         return
-    from rosbags.rosbag2 import Reader
-    from rosbags.rosbag2.errors import ReaderError
-    from rosbags.rosbag2.storage_sqlite3 import Sqlite3Reader
-
     from rosbags.interfaces import MessageDefinitionFormat
 
-    units = [Reader(layout.root)] if layout.metadata is not None else [Sqlite3Reader(f) for f in layout.files]
-    for unit in units:
-        try:
-            unit.open()
-        except (ReaderError, *_sqlite_errors()) as exc:
-            raise BagError(_sqlite_open_error(layout.root, exc)) from None
+    for unit in _sqlite_units(layout):
         try:
             conns = [c for c in unit.connections if want is None or c.topic in want]
             if types is not None:
@@ -446,6 +437,22 @@ def _raw_stream(layout: _Layout, topics, report: ReadReport, types: _Types | Non
                     log.warning("%s is damaged: %s; read %d messages", layout.root, exc, sum(report.read.values()))
         finally:
             unit.close()
+
+
+def _sqlite_units(layout):
+    """Open rosbags readers of an sqlite3 bag one at a time (the bag directory's ``Reader`` when it has
+    metadata, else one reader per ``.db3`` file); the caller closes each. Open errors -> BagError."""
+    from rosbags.rosbag2 import Reader
+    from rosbags.rosbag2.errors import ReaderError
+    from rosbags.rosbag2.storage_sqlite3 import Sqlite3Reader
+
+    units = [Reader(layout.root)] if layout.metadata is not None else [Sqlite3Reader(f) for f in layout.files]
+    for unit in units:
+        try:
+            unit.open()
+        except (ReaderError, *_sqlite_errors()) as exc:
+            raise BagError(_sqlite_open_error(layout.root, exc)) from None
+        yield unit
 
 
 def _sqlite_errors() -> tuple:
@@ -544,15 +551,8 @@ def _open_layout(layout: _Layout) -> BagInfo:
         rep.expected = dict(meta_counts) if layout.metadata is not None else (stats_counts if stats_complete else {})
     else:
         from rosbags.rosbag2 import Reader
-        from rosbags.rosbag2.errors import ReaderError
-        from rosbags.rosbag2.storage_sqlite3 import Sqlite3Reader
 
-        units = [Reader(layout.root)] if layout.metadata is not None else [Sqlite3Reader(f) for f in layout.files]
-        for unit in units:
-            try:
-                unit.open()
-            except (ReaderError, *_sqlite_errors()) as exc:
-                raise BagError(_sqlite_open_error(layout.root, exc)) from None
+        for unit in _sqlite_units(layout):
             try:
                 for c in unit.connections:
                     types[c.topic] = c.msgtype

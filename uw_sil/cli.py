@@ -11,9 +11,9 @@ Exit codes: 0 success, 1 bad input (message on stderr), 130 interrupted (no part
 from __future__ import annotations
 
 import argparse
-import os
-import shutil
+import signal
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -55,13 +55,6 @@ def _progress_bar(total: int, desc: str):
         if done >= _total:
             bar.close()
     return update
-
-
-def _remove(path: Path):
-    if path.is_dir():
-        shutil.rmtree(path)
-    elif path.exists():
-        path.unlink()
 
 
 def cmd_synth(args) -> int:
@@ -108,6 +101,16 @@ def cmd_info(args) -> int:
     return 0
 
 
+# SIGINTs seen by main(): some third-party code swallows KeyboardInterrupt (trimesh wraps exceptions of
+# its optional imports), so long work also polls this list and outputs are written only if it is empty.
+_INTERRUPTED: list = []
+
+
+def _raise_if_interrupted(*_):
+    if _INTERRUPTED:
+        raise KeyboardInterrupt
+
+
 def _sim_noise(text: str):
     if text in ("estimate", "none"):
         return text
@@ -131,8 +134,9 @@ def cmd_fit(args) -> int:
         fits.append(fit_bag(args.bag, k=args.frames, stride=args.stride, min_coverage=args.min_coverage,
                             method=m, color_model=args.color_model, channels=args.channels, fog=args.fog,
                             hist_pixels=args.hist_pixels, sim_noise=_sim_noise(args.sim_noise),
-                            x0=None if args.start == "centre" else args.start,
+                            x0=None if args.start == "centre" else args.start, callback=_raise_if_interrupted,
                             seed=args.seed, progress=True, **opts))
+    _raise_if_interrupted()
     fit = fits[0]
     for i, reason in fit.skipped:
         print(f"skipped frame #{i}: {reason}", file=sys.stderr)
@@ -247,14 +251,33 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
+    interrupted = _INTERRUPTED
+    interrupted.clear()
+
+    def on_sigint(signum, frame):
+        interrupted.append(signum)
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGINT, on_sigint) if threading.current_thread() is threading.main_thread() else None
     try:
         return args.func(args)
     except KeyboardInterrupt:
         print("interrupted: no output written", file=sys.stderr)
         return 130
     except (ValueError, FileNotFoundError) as e:
+        if interrupted:   # Ctrl-C inside a third-party import or callback may surface as another error
+            print("interrupted: no output written", file=sys.stderr)
+            return 130
         print(f"uw-sil {args.command}: error: {e}", file=sys.stderr)
         return 1
+    except Exception:
+        if interrupted:
+            print("interrupted: no output written", file=sys.stderr)
+            return 130
+        raise
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGINT, previous)
 
 
 if __name__ == "__main__":

@@ -121,6 +121,16 @@ def _check_image(img, name: str, *, allow_batch: bool = False, values: bool = Tr
     return img
 
 
+def _check_mask(mask, shape) -> np.ndarray:
+    """A boolean (rows, cols) mask, or a clear error."""
+    m = np.asarray(mask)
+    if m.dtype != bool:
+        raise TypeError(f"mask must be a boolean array, got dtype {m.dtype}")
+    if m.shape != tuple(shape):
+        raise ValueError(f"mask must have shape {tuple(shape)}, got {m.shape}")
+    return m
+
+
 def _mround(x: float) -> int:
     """MATLAB ``round`` for non-negative numbers: halves go away from zero."""
     return int(math.floor(x + 0.5))
@@ -614,11 +624,7 @@ class FSIMReference:
         if mask is None:
             self._weight = None
         else:
-            m = np.asarray(mask)
-            if m.dtype != bool:
-                raise TypeError(f"mask must be a boolean array, got dtype {m.dtype}")
-            if m.shape != (rows, cols):
-                raise ValueError(f"mask must have shape {(rows, cols)}, got {m.shape}")
+            m = _check_mask(mask, (rows, cols))
             w = m[:: self.factor, :: self.factor]
             if not w.any():
                 raise ValueError("mask selects no pixel of the downsampled image")

@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .fsim import _check_image
+from .fsim import _check_image, _check_mask
 
 __all__ = [
     "DEFAULT_BINS",
@@ -225,11 +225,7 @@ class HistogramReference:
             self._sel = None
             self._region = region.ravel()
         else:
-            m = np.asarray(mask)
-            if m.dtype != bool:
-                raise TypeError(f"mask must be a boolean array, got dtype {m.dtype}")
-            if m.shape != (rows, cols):
-                raise ValueError(f"mask must have shape {(rows, cols)}, got {m.shape}")
+            m = _check_mask(mask, (rows, cols))
             if not m.any():
                 raise ValueError("mask selects no pixel")
             self._sel = np.flatnonzero(m)

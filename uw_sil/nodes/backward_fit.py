@@ -21,8 +21,7 @@ import sys
 import threading
 import time
 
-import rclpy
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.task import Future
 from rclpy.parameter import Parameter
@@ -39,6 +38,7 @@ from ..camera import CameraModel
 from ..imgmsg import image_to_rgb
 from ..stamps import StampSynchronizer
 from ..transforms import pose_to_matrix
+from . import run_node
 
 
 def _defaults(fn) -> dict:
@@ -76,8 +76,12 @@ class BackwardFitNode(Node):
         self.finished = Future()   # result: True when done, False when failed (for exit_when_done)
         # streams: 0 image (primary), 1 camera_info (any age: often latched or slow), 2 pose (max_dt)
         self.sync = StampSynchronizer(3, max_dt=[None, self.get_parameter("max_dt").value])
-        self.create_subscription(Image, "camera/image_raw", lambda m: self._add(0, m), qos_profile_sensor_data)
-        self.create_subscription(CameraInfo, "camera/camera_info", lambda m: self._add(1, m), qos_profile_sensor_data)
+        # Sensor-data QoS (best effort: matches any camera driver), but a deeper queue than its 5: frame
+        # selection renders in the callback, and the first frames of a dive should not be dropped.
+        sensor = QoSProfile(depth=30, reliability=qos_profile_sensor_data.reliability,
+                            durability=qos_profile_sensor_data.durability)
+        self.create_subscription(Image, "camera/image_raw", lambda m: self._add(0, m), sensor)
+        self.create_subscription(CameraInfo, "camera/camera_info", lambda m: self._add(1, m), sensor)
         self.create_subscription(PoseStamped, "panel/pose", lambda m: self._add(2, m), 10)
         self.create_service(Trigger, "~/start", self._on_start)
         self._last_progress = None
@@ -221,32 +225,20 @@ class BackwardFitNode(Node):
         super().destroy_node()
 
 
+def _spin(node) -> int:
+    # Single-threaded on purpose: the OpenGL context of the renderer belongs to this thread.
+    # The fit itself runs in a worker thread and needs no rendering.
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    if node.get_parameter("exit_when_done").value:
+        executor.spin_until_future_complete(node.finished)
+        return 0 if not node.finished.done() or node.finished.result() else 1
+    executor.spin()
+    return 0
+
+
 def main(args=None):
-    rclpy.init(args=args)
-    node = None
-    code = 0
-    try:
-        node = BackwardFitNode()
-        # Single-threaded on purpose: the OpenGL context of the renderer belongs to this thread.
-        # The fit itself runs in a worker thread and needs no rendering.
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
-        if node.get_parameter("exit_when_done").value:
-            executor.spin_until_future_complete(node.finished)
-            code = 0 if not node.finished.done() or node.finished.result() else 1
-        else:
-            executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except Exception:
-        if rclpy.ok():
-            raise
-        # Ctrl-C during start-up shut the context down under the constructor: not an error
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return code
+    return run_node(BackwardFitNode, _spin, args=args)
 
 
 if __name__ == "__main__":

@@ -32,8 +32,7 @@ import time
 import rclpy
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.duration import Duration
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
-from rclpy.logging import get_logger
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -41,6 +40,7 @@ from rosgraph_msgs.msg import Clock
 from std_srvs.srv import Trigger
 
 from ..bag import iter_raw, open_bag
+from . import run_node
 
 PLAYBACK_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE,
                           durability=DurabilityPolicy.VOLATILE)
@@ -221,30 +221,16 @@ class BagPlayNode(Node):
         return True
 
 
+def _spin(node) -> int:
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    if not node.wait_for_readers(executor) or not node.play(executor):
+        return 1 if rclpy.ok() else 0   # interrupted (Ctrl-C) is not an error
+    return 0
+
+
 def main(args=None):
-    rclpy.init(args=args)
-    code = 0
-    node = None
-    try:
-        node = BagPlayNode()
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
-        if not node.wait_for_readers(executor) or not node.play(executor):
-            code = 1 if rclpy.ok() else 0   # interrupted (Ctrl-C) is not an error
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except (ValueError, FileNotFoundError) as e:
-        get_logger("bag_play").error(str(e))
-        code = 1
-    except Exception:
-        if rclpy.ok():
-            raise
-        # Ctrl-C during start-up shut the context down under the constructor: not an error
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return code
+    return run_node(BagPlayNode, _spin, args=args, name="bag_play", user_errors=(ValueError, FileNotFoundError))
 
 
 if __name__ == "__main__":

@@ -19,9 +19,7 @@ from __future__ import annotations
 import sys
 
 import numpy as np
-import rclpy
 from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor, SetParametersResult
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data
 from geometry_msgs.msg import PoseStamped
@@ -32,6 +30,7 @@ from ..imgmsg import depth_to_image_fields, rgb_to_image_fields
 from ..params import RGB_NAMES, UNITS, UnderwaterParams
 from ..simcam import SimCamera
 from ..transforms import pose_to_matrix
+from . import run_node
 
 _RANGES = {"a": (0.0, 5.0), "b": (0.0, 1.0), "rho": (0.0, 5.0)}
 
@@ -119,22 +118,7 @@ class SimCameraNode(Node):
 
 
 def main(args=None):
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = SimCameraNode()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except Exception:
-        if rclpy.ok():
-            raise
-        # Ctrl-C during start-up shut the context down under the constructor: not an error
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run_node(SimCameraNode, args=args)
 
 
 if __name__ == "__main__":
