@@ -15,6 +15,7 @@ import time
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 
+import cma  # noqa: E402,F401  -- imported once here, outside the timings (its first import takes ~1.5 s)
 import numpy as np  # noqa: E402
 
 from uw_sil.backward import fit_frames, select_frames  # noqa: E402
