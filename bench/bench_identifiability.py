@@ -68,6 +68,11 @@ def main():
         ax.legend(fontsize=8, loc="upper right")
         fig.colorbar(im, ax=ax, label="θ")
         inside = th >= th.max() * 0.995
+        j0 = int(np.argmin(np.abs(rho - 0.0)))
+        i0 = int(np.argmax(th[j0]))
+        jt, it = int(np.argmin(np.abs(rho - TRUTH.rho_f))), int(np.argmin(np.abs(ag - 1.0)))
+        print(f"{label}: θ at the truth {th[jt, it]:.4f}; best explanation without fog: s={ag[i0]:.2f}, "
+              f"θ {th[j0, i0]:.4f} (gap {th[jt, it] - th[j0, i0]:.4f})")
         print(f"{label}: ranges {ranges} m; grid max at s={ag[i]:.3f}, rho={rho[j]:.3f} (truth 1, "
               f"{TRUTH.rho_f}); 99.5 % region spans s {ag[inside.any(0)].min():.3f}..{ag[inside.any(0)].max():.3f}, "
               f"rho {rho[inside.any(1)].min():.3f}..{rho[inside.any(1)].max():.3f}")
