@@ -72,23 +72,29 @@ def cmd_synth(args) -> int:
                              progress=_progress_bar(args.frames, "render"), overwrite=args.force, **kw)
     print(f"wrote bag {truth['bag']} ({args.frames} frames) and {truth_path(out)}")
     if args.contact_sheet:
-        _contact_sheet(out, Path(args.contact_sheet), truth["params"])
+        _contact_sheet(out, Path(args.contact_sheet))
         print(f"wrote {args.contact_sheet}")
     return 0
 
 
-def _contact_sheet(bag: Path, png: Path, truth_params=None, rows: int = 4):
-    from .bag import read_samples
+def _contact_sheet(bag: Path, png: Path, rows: int = 4):
+    from .bag import open_bag, read_samples
     from .render import Renderer
     from .viz import contact_sheet, save_figure
 
-    samples = list(read_samples(bag))
-    pick = np.unique(np.linspace(0, len(samples) - 1, min(rows, len(samples))).round().astype(int))
+    n = open_bag(bag).topics["/camera/image_raw"].count
+    pick = set(np.unique(np.linspace(0, n - 1, min(rows, n)).round().astype(int)).tolist())
     items = []
-    with Renderer(camera=samples[0].camera) as r:
-        for i in pick:
-            s = samples[i]
-            items.append((f"frame #{i} ({np.linalg.norm(s.pose[:3, 3]):.2f} m)", s.image, r.render(s.pose)))
+    renderer = None
+    try:
+        for i, s in enumerate(read_samples(bag)):      # streamed: only the picked frames are kept
+            if i not in pick:
+                continue
+            renderer = renderer or Renderer(camera=s.camera)
+            items.append((f"frame #{i} ({np.linalg.norm(s.pose[:3, 3]):.2f} m)", s.image, renderer.render(s.pose)))
+    finally:
+        if renderer is not None:
+            renderer.close()
     title = f"{bag.name}: recorded frames next to the clean render, depth and mask"
     save_figure(contact_sheet(items, title), png)
 

@@ -29,6 +29,15 @@ def _snapshot_iterations(n_iters: int, count: int = 5) -> list[int]:
     return [int(i) for i in its]
 
 
+def _simulator(fit, frame: int):
+    """x (the fit's parameter space) -> noise-free simulated image of fit frame ``frame``."""
+    from .optics import PreparedRender
+
+    rr = fit.frames[frame].render
+    prep = PreparedRender(rr.rgb, rr.range, rr.depth, fog=fit.fog)
+    return lambda x: prep(fit.space.to_rgb(np.asarray(x, dtype=float)))
+
+
 def _closest_frame(fit) -> int:
     """The fit frame where the panel is largest (most to see in a figure)."""
     return int(np.argmax([f.coverage for f in fit.frames]))
@@ -38,18 +47,15 @@ def progression_figure(fit, frame: int = None, count: int = 5):
     """Real frame, then the simulation with the best parameters at several iterations."""
     plt = _plt()
     frame = _closest_frame(fit) if frame is None else frame
-    from .backward import BackwardObjective
-
+    simulate = _simulator(fit, frame)
     o = fit.optim
-    obj = BackwardObjective([fit.frames[frame]], fit.space, channels=fit.channels, fog=fit.fog, batch=1,
-                            hist_pixels=fit.hist_pixels)
     its = _snapshot_iterations(len(o.history_best_x), count)
     fig, axes = plt.subplots(1, len(its) + 1, figsize=(3.2 * (len(its) + 1), 2.9))
     axes[0].imshow(fit.frames[frame].image)
     axes[0].set_title(f"real frame #{fit.frames[frame].index}", fontsize=9)
     for ax, t in zip(axes[1:], its):
         x = np.asarray(o.history_best_x[t])
-        sim = obj.simulate(x)
+        sim = simulate(x)
         ax.imshow(np.clip(sim, 0, 1))
         ax.set_title(f"t = {t + 1}, θ = {o.history_best_f[t]:.4f}", fontsize=9)
     for ax in axes:
@@ -92,11 +98,8 @@ def residual_figure(fit, frame: int = None):
     """real − simulation at the fitted parameters, signed, per channel and as luminance (in 0..1 units)."""
     plt = _plt()
     frame = _closest_frame(fit) if frame is None else frame
-    from .backward import BackwardObjective
-
-    obj = BackwardObjective([fit.frames[frame]], fit.space, channels=fit.channels, fog=fit.fog, batch=1,
-                            hist_pixels=fit.hist_pixels)
-    sim = obj.simulate(fit.x_best)
+    simulate = _simulator(fit, frame)
+    sim = simulate(fit.x_best)
     real = fit.frames[frame].image.astype(np.float32) / 255.0
     res = real - sim
     lim = max(0.05, float(np.percentile(np.abs(res), 99.5)))
