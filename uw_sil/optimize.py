@@ -806,7 +806,9 @@ def optimize(
     if progress:
         from tqdm import tqdm
 
-        bar = tqdm(total=max_iter + 1, desc=method, unit="it", file=sys.stderr, leave=True)
+        # On a terminal a live bar; in logs (CI, launch files) an update every 15 s instead of every iteration.
+        bar = tqdm(total=max_iter + 1, desc=method, unit="it", file=sys.stderr, leave=True,
+                   mininterval=0.1 if sys.stderr.isatty() else 15.0)
     rec = _Recorder(objective, lo, hi, target, callback, bar)
     try:
         if method == "pso":
