@@ -37,7 +37,8 @@ def test_fit_writes_params_summary_and_report(bag, tmp_path, capsys):
                "--out", str(out), "--report", str(tmp_path / "report")])
     assert rc == 0
     params = yaml.safe_load(out.read_text())["/**"]["ros__parameters"]
-    assert set(params) == {"a_r", "a_g", "a_b", "b_r", "b_g", "b_b", "rho_f", "fog_mode"}
+    assert set(params) == {"a_r", "a_g", "a_b", "b_r", "b_g", "b_b", "rho_f", "fog_mode", "noise_sigma"}
+    assert 0.5 < params["noise_sigma"] < 5.0            # the synthetic camera's 1-3 grey levels, estimated
     summary = json.loads((tmp_path / "fit.json").read_text())
     assert summary["optimizer"] == "cmaes" and summary["evaluations"] == 4 * 20
     assert len(summary["history_best_theta"]) == 4

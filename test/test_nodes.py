@@ -357,10 +357,11 @@ def test_backward_graph_refits_sim_camera_and_stops_on_ctrl_c(trial, tmp_path, m
         fitted = yaml.safe_load(fit_yaml.read_text())["/**"]["ros__parameters"]
         client = AsyncParameterClient(node, "sim_camera")
         assert client.wait_for_services(timeout_sec=TIMEOUT)
-        values = wait_future(ex, client.get_parameters(list(RGB_NAMES) + ["fog_mode"])).values
+        values = wait_future(ex, client.get_parameters(list(RGB_NAMES) + ["fog_mode", "noise_sigma"])).values
         live = {n: v.double_value for n, v in zip(RGB_NAMES, values) if v.type == ParameterType.PARAMETER_DOUBLE}
         assert live == {n: fitted[n] for n in RGB_NAMES}        # sim_camera runs with exactly the fit
-        assert values[-1].string_value == fitted["fog_mode"] == "exp2"
+        assert values[-2].string_value == fitted["fog_mode"] == "exp2"
+        assert values[-1].double_value == fitted["noise_sigma"] > 0
         # The node fits exactly what `uw-sil fit` fits offline on the same frames (how close that comes to
         # the truth is test_backward's subject); and it improved θ over the start of the search.
         offline = fit_bag(trial, k=3, stride=4, method="cmaes", max_iter=MAX_ITER, seed=0)
@@ -406,7 +407,8 @@ def test_backward_graph_with_a_bag_ends_by_itself(trial, tmp_path):
     assert "required node backward_fit ended: stopping sim_camera" in text
     assert "all nodes ended cleanly" in text
     params = yaml.safe_load(fit_yaml.read_text())["/**"]["ros__parameters"]
-    assert set(params) == set(RGB_NAMES) | {"fog_mode"}
+    assert set(params) == set(RGB_NAMES) | {"fog_mode", "noise_sigma"}
+    assert 0.5 < params["noise_sigma"] < 5.0      # the trial's camera noise, estimated on the water
 
 
 def test_play_command_ends_with_the_bag(trial):

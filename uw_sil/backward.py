@@ -297,6 +297,11 @@ class FitResult:
     noise_sigma: list = None
     sim_noise: object = "estimate"
 
+    @property
+    def noise_level(self) -> float:
+        """Mean estimated camera noise over frames and channels, in grey levels (0 without estimate)."""
+        return float(np.mean(self.noise_sigma)) if self.noise_sigma else 0.0
+
     def summary(self) -> dict:
         o = self.optim
         return {
@@ -471,13 +476,18 @@ def write_json_atomic(path, data) -> Path:
 
 
 def write_params_yaml(path, params: UnderwaterParams, node_name: str = DEFAULT_NODE_NAME, fog: str = "exp2",
-                      comment: str = "") -> Path:
-    """ROS 2 parameters file for the sim camera node (``--ros-args --params-file``), written atomically."""
+                      comment: str = "", noise_sigma: Optional[float] = None) -> Path:
+    """ROS 2 parameters file for the sim camera node (``--ros-args --params-file``), written atomically.
+
+    ``noise_sigma`` (grey levels), when given, is the camera noise the fit estimated on the real frames."""
     import yaml
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    body = {node_name: {"ros__parameters": {**params.as_dict(), "fog_mode": fog}}}
+    ros_params = {**params.as_dict(), "fog_mode": fog}
+    if noise_sigma is not None:
+        ros_params["noise_sigma"] = float(noise_sigma)
+    body = {node_name: {"ros__parameters": ros_params}}
     text = "".join(f"# {line}\n" for line in comment.splitlines()) + yaml.safe_dump(body, sort_keys=False)
     tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
     tmp.write_text(text)

@@ -148,7 +148,8 @@ def cmd_fit(args) -> int:
         print(f"skipped frame #{i}: {reason}", file=sys.stderr)
     comment = (f"uw_sil backward fit of {args.bag}: {fit.optim.method}, theta {fit.theta_start:.4f} -> "
                f"{fit.theta_best:.4f}, {fit.optim.n_evals} evaluations, {fit.wall_time_s:.1f} s")
-    write_params_yaml(args.out, fit.params, node_name=args.node_name, fog=args.fog, comment=comment)
+    write_params_yaml(args.out, fit.params, node_name=args.node_name, fog=args.fog, comment=comment,
+                      noise_sigma=fit.noise_level)
     summary = fit.summary()
     summary["bag"] = str(args.bag)
     if len(fits) > 1:

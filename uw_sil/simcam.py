@@ -45,14 +45,21 @@ class SimCamera:
     model : path or trimesh.Scene, optional
         Panel model (default: the shipped intervention panel).
     fog : {'exp2', 'exp', 'none'}
+    noise_sigma : float
+        Camera noise, standard deviation in grey levels (0..255 units), a fresh Gaussian realization per
+        frame (the backward fit estimates it on the real frames). 0: noise-free images.
+    seed : int, optional
+        Seed of the noise.
     """
 
     def __init__(self, params: Optional[UnderwaterParams] = None, camera: Optional[CameraModel] = None,
-                 model=None, fog: str = "exp2"):
+                 model=None, fog: str = "exp2", noise_sigma: float = 0.0, seed: Optional[int] = None):
         from .render import Renderer
 
         self.params = params or UnderwaterParams()
         self.fog = fog
+        self.noise_sigma = noise_sigma
+        self._rng = np.random.default_rng(seed)
         self.renderer = Renderer(model, camera=camera or CameraModel.from_fov())
 
     @property
@@ -66,6 +73,17 @@ class SimCamera:
         self._fog = mode
 
     @property
+    def noise_sigma(self) -> float:
+        return self._noise_sigma
+
+    @noise_sigma.setter
+    def noise_sigma(self, sigma: float):
+        sigma = float(sigma)
+        if not np.isfinite(sigma) or sigma < 0:
+            raise ValueError(f"noise_sigma must be finite and >= 0 (grey levels), got {sigma}")
+        self._noise_sigma = sigma
+
+    @property
     def camera(self) -> CameraModel:
         return self.renderer.camera
 
@@ -76,7 +94,11 @@ class SimCamera:
 
     def render(self, T_cam_panel) -> SimFrame:
         rr = self.renderer.render(T_cam_panel)
-        return SimFrame(degrade(rr.rgb, rr.range, rr.depth, self.params.as_vector(), fog=self.fog), rr)
+        img = degrade(rr.rgb, rr.range, rr.depth, self.params.as_vector(), fog=self.fog)
+        if self._noise_sigma > 0:
+            img += self._rng.standard_normal(img.shape, dtype=np.float32) * np.float32(self._noise_sigma / 255.0)
+            np.clip(img, 0.0, 1.0, out=img)
+        return SimFrame(img, rr)
 
     def close(self):
         self.renderer.close()

@@ -195,13 +195,14 @@ class BackwardFitNode(Node):
                 return  # interrupted: the partial result is not written anywhere
             self.result = fit
             if g("output_yaml"):
-                write_params_yaml(g("output_yaml"), fit.params, fog=g("fog_mode"))
+                write_params_yaml(g("output_yaml"), fit.params, fog=g("fog_mode"), noise_sigma=fit.noise_level)
         except Exception as e:  # report, never die silently in a thread
             self._finish(False, f"failed: {type(e).__name__}: {e}")
             return
         summary = f"theta {fit.theta_start:.4f} -> {fit.theta_best:.4f} in {fit.wall_time_s:.1f} s"
         values = [Parameter(n, value=float(v)) for n, v in fit.params.as_dict().items()]
         values.append(Parameter("fog_mode", value=g("fog_mode")))
+        values.append(Parameter("noise_sigma", value=fit.noise_level))
         sim = g("sim_node")
         if not self.sim_params.wait_for_services(timeout_sec=10.0):
             self._finish(False, f"failed: {summary}, but the parameter services of {sim} are not available")

@@ -10,7 +10,7 @@ Publishes (stamped with the pose's stamp, frame = the pose's frame)
     ``sim/camera_info``.
 Parameters (live, validated; set with ``ros2 param set`` or the parameter services)
     ``a_r a_g a_b`` attenuation [1/m], ``b_r b_g b_b`` background [0..1], ``rho_f`` fog density [1/m],
-    ``fog_mode`` (exp2|exp|none); read-only: ``model_path``, ``width``, ``height``, ``hfov_deg``,
+    ``fog_mode`` (exp2|exp|none), ``noise_sigma`` (camera noise in grey levels); read-only: ``model_path``, ``width``, ``height``, ``hfov_deg``,
     ``queue_size`` (1: poses arriving while a frame renders replace each other, so the newest is
     rendered next; raise it to render every pose of a burst, at the cost of latency).
 """
@@ -49,6 +49,9 @@ class SimCameraNode(Node):
         for n in RGB_NAMES:
             self.declare_parameter(n, defaults[n], _descriptor(n))
         self.declare_parameter("fog_mode", "exp2", ParameterDescriptor(description="exp2 | exp | none"))
+        self.declare_parameter("noise_sigma", 0.0, ParameterDescriptor(
+            description="camera noise, standard deviation in grey levels (0 = noise-free)",
+            floating_point_range=[FloatingPointRange(from_value=0.0, to_value=50.0, step=0.0)]))
         ro = ParameterDescriptor(read_only=True)
         self.declare_parameter("model_path", "", ro)
         self.declare_parameter("width", 640, ro)
@@ -58,7 +61,7 @@ class SimCameraNode(Node):
         g = self.get_parameter
         camera = CameraModel.from_fov(g("width").value, g("height").value, g("hfov_deg").value)
         self.sim = SimCamera(self._params_from(dict()), camera=camera, model=g("model_path").value or None,
-                             fog=g("fog_mode").value)
+                             fog=g("fog_mode").value, noise_sigma=g("noise_sigma").value)
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
         self.pub_image = self.create_publisher(Image, "sim/image_raw", qos_profile_sensor_data)
@@ -82,6 +85,8 @@ class SimCameraNode(Node):
             new = self._params_from(changes)
             fog = changes.get("fog_mode", self.sim.fog)
             self.sim.fog = fog
+            if "noise_sigma" in changes:
+                self.sim.noise_sigma = changes["noise_sigma"]
         except (ValueError, TypeError) as e:
             return SetParametersResult(successful=False, reason=str(e))
         self.sim.params = new

@@ -1,0 +1,31 @@
+"""The simulated camera: renderer + live parameters + camera noise."""
+import numpy as np
+import pytest
+
+from uw_sil.camera import CameraModel
+from uw_sil.optics import degrade
+from uw_sil.params import UnderwaterParams
+from uw_sil.scene import facing_pose
+from uw_sil.simcam import SimCamera
+
+CAM = CameraModel.from_fov(80, 60)
+
+
+def test_frame_is_the_underwater_model_of_the_render_and_follows_parameter_changes():
+    p = UnderwaterParams(a=(0.4, 0.1, 0.05), b=(0.05, 0.3, 0.4), rho_f=0.1)
+    with SimCamera(p, camera=CAM) as cam:
+        f = cam.render(facing_pose(2.0))
+        np.testing.assert_array_equal(f.image, degrade(f.render.rgb, f.render.range, f.render.depth, p.as_vector()))
+        cam.params = UnderwaterParams(a=(0.4, 0.1, 0.05), b=(0.5, 0.3, 0.4), rho_f=0.1)
+        assert cam.render(facing_pose(2.0)).image[0, 0, 0] == pytest.approx(0.5)   # water = background
+
+
+def test_noise_has_the_requested_sigma_and_changes_per_frame():
+    with SimCamera(camera=CAM, seed=1) as clean, SimCamera(camera=CAM, noise_sigma=3.0, seed=1) as noisy:
+        pose = facing_pose(2.0)
+        d1 = noisy.render(pose).image - clean.render(pose).image
+        d2 = noisy.render(pose).image - clean.render(pose).image
+        assert np.std(d1) * 255 == pytest.approx(3.0, rel=0.05)
+        assert not np.array_equal(d1, d2)
+        with pytest.raises(ValueError, match="noise_sigma"):
+            noisy.noise_sigma = -1.0
