@@ -88,3 +88,13 @@ def test_params_yaml_is_ros2_params_file(tmp_path):
     assert d["/**"]["ros__parameters"]["a_r"] == pytest.approx(0.40)
     assert d["/**"]["ros__parameters"]["fog_mode"] == "exp2"
     assert not list(tmp_path.glob(".*tmp*"))
+
+
+def test_frames_of_different_sizes_are_refused(trial):
+    from uw_sil.bag import Sample
+
+    samples = list(read_samples(trial))[:2]
+    small = CameraModel.from_fov(160, 120, 70.0)
+    other = Sample(samples[1].stamp_ns, np.zeros((120, 160, 3), np.uint8), small, samples[1].pose)
+    with Renderer(camera=SMALL) as r, pytest.raises(ValueError, match="frame 1 is 160x120 but earlier frames are 320x240"):
+        select_frames([samples[0], other], r, k=2)
