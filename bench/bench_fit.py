@@ -47,14 +47,14 @@ def main():
               f"{pso.wall_time_s:.1f} s wall, θ = {pso.theta_best:.5f}, converged at iteration "
               f"{pso.optim.converged_iter}, stop: {pso.optim.stop_reason}; |error| a {err[:3].round(3)}, "
               f"b {err[3:6].round(3)}, rho {err[6]:.3f}  ({1e3 * pso.wall_time_s / pso.optim.n_evals:.1f} ms/eval)")
-        cma = fit_frames(frames, method="cmaes", seed=args.seed, max_iter=1000, target=pso.theta_best, x0=None)
-        reached = cma.optim.evals_to_target
-        err = np.abs(cma.params.as_vector() - truth)
+        cmaes_fit = fit_frames(frames, method="cmaes", seed=args.seed, max_iter=1000, target=pso.theta_best, x0=None)
+        reached = cmaes_fit.optim.evals_to_target
+        err = np.abs(cmaes_fit.params.as_vector() - truth)
         print(f"[{name}] CMA-ES to the PSO's θ: {'reached' if reached else 'NOT reached'} after "
-              f"{reached or cma.optim.n_evals} evaluations, {cma.wall_time_s:.1f} s wall, θ = {cma.theta_best:.5f}; "
+              f"{reached or cmaes_fit.optim.n_evals} evaluations, {cmaes_fit.wall_time_s:.1f} s wall, θ = {cmaes_fit.theta_best:.5f}; "
               f"|error| a {err[:3].round(3)}, b {err[3:6].round(3)}, rho {err[6]:.3f}")
-        ratio = pso.wall_time_s / cma.wall_time_s
-        evals_ratio = pso.optim.n_evals / (reached or cma.optim.n_evals)
+        ratio = pso.wall_time_s / cmaes_fit.wall_time_s
+        evals_ratio = pso.optim.n_evals / (reached or cmaes_fit.optim.n_evals)
         print(f"[{name}] PSO/CMA-ES: wall time ratio {ratio:.1f}x, evaluations ratio {evals_ratio:.1f}x")
         if name == "K=1":
             ratio1 = ratio

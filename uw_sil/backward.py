@@ -18,6 +18,7 @@ from typing import Callable, Iterable, Optional
 
 import numpy as np
 
+from .fileio import write_text_atomic
 from .params import ParamSpace, UnderwaterParams
 
 __all__ = ["FitFrame", "FrameSelection", "FrameSelector", "select_frames", "BackwardObjective", "FitResult", "fit_frames",
@@ -229,14 +230,6 @@ class BackwardObjective:
             raise ValueError(f"sim_noise must be >= 0, got {sim_noise!r}")
         return sigma
 
-    def simulate(self, x, frame: int = 0, noise: bool = False) -> np.ndarray:
-        """Simulated image(s) in [0, 1] for space vector(s) ``x`` at fit frame ``frame``
-        (with the frame's camera noise when ``noise``)."""
-        img = self.prepared[frame](self.space.to_rgb(x))
-        if noise and self.noise[frame] is not None:
-            img = self.noise[frame].apply(img * 255.0) / 255.0
-        return img
-
     def __call__(self, X) -> np.ndarray:
         X = np.atleast_2d(np.asarray(X, dtype=float))
         P = np.clip(self.space.to_rgb(X), 0.0, None)
@@ -295,7 +288,6 @@ class FitResult:
     wall_time_s: float
     hist_pixels: str = "split"
     noise_sigma: list = None
-    sim_noise: object = "estimate"
 
     @property
     def noise_level(self) -> float:
@@ -381,7 +373,7 @@ def fit_frames(frames: list, method: str = "pso", color_model: str = "rgb", chan
         if space.model == "rgb" else UnderwaterParams.from_vector(res.x_best, model="hsv")
     return FitResult(params, np.asarray(res.x_best), float(res.f_best), theta_start, space, res, frames,
                      list(skipped), channels, fog, time.perf_counter() - t0, hist_pixels,
-                     [s.tolist() for s in obj.noise_sigma], sim_noise)
+                     [s.tolist() for s in obj.noise_sigma])
 
 
 def linear_start(frames: list, space: ParamSpace, fog: str = "exp2") -> np.ndarray:
@@ -398,12 +390,10 @@ def linear_start(frames: list, space: ParamSpace, fog: str = "exp2") -> np.ndarr
     from scipy.optimize import nnls
 
     centre = (space.lower + space.upper) / 2
-    rgb = space.to_rgb(centre)
-    water = [f.image[f.render.labels == 0] for f in frames]
-    water = [w for w in water if w.size]
-    if not water:
+    b = _water_colour(frames)
+    if b is None:
         return centre
-    b = np.clip(np.concatenate(water).reshape(-1, 3).mean(axis=0) / 255.0, 0.0, 1.0)
+    rgb = space.to_rgb(centre)
     rgb[3:6] = b
     rows, ys, ws = [], [], []
     for f in frames:
@@ -441,15 +431,23 @@ def linear_start(frames: list, space: ParamSpace, fog: str = "exp2") -> np.ndarr
     return np.clip(space.from_rgb(rgb), space.lower, space.upper)
 
 
+def _water_colour(frames: list):
+    """Mean colour (0..1) of the real frames' water pixels (Eq. 1 at r = inf: the background); None if none."""
+    water = [f.image[f.render.labels == 0] for f in frames]
+    water = [w for w in water if w.size]
+    if not water:
+        return None
+    return np.clip(np.concatenate(water).reshape(-1, 3).mean(axis=0) / 255.0, 0.0, 1.0)
+
+
 def water_start(frames: list, space: ParamSpace) -> np.ndarray:
     """Start vector: background = mean real water colour, other parameters at the centre of the bounds."""
-    water = [f.image[f.render.labels == 0] for f in frames]
-    water = np.concatenate([w for w in water if w.size]) if any(w.size for w in water) else None
     centre = (space.lower + space.upper) / 2
-    if water is None:
+    b = _water_colour(frames)
+    if b is None:
         return centre
     rgb = space.to_rgb(centre)
-    rgb[3:6] = np.clip(water.reshape(-1, 3).mean(axis=0) / 255.0, 0.0, 1.0)
+    rgb[3:6] = b
     return np.clip(space.from_rgb(rgb), space.lower, space.upper)
 
 
@@ -467,12 +465,7 @@ def fit_bag(bag, k: int = 3, stride: int = 1, min_coverage: float = 0.02, max_sc
 
 def write_json_atomic(path, data) -> Path:
     """Write JSON through a temporary file and a rename: readers never see a half-written file."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    tmp.write_text(json.dumps(data, indent=2))
-    os.replace(tmp, path)
-    return path
+    return write_text_atomic(path, json.dumps(data, indent=2))
 
 
 def write_params_yaml(path, params: UnderwaterParams, node_name: str = DEFAULT_NODE_NAME, fog: str = "exp2",
@@ -482,14 +475,9 @@ def write_params_yaml(path, params: UnderwaterParams, node_name: str = DEFAULT_N
     ``noise_sigma`` (grey levels), when given, is the camera noise the fit estimated on the real frames."""
     import yaml
 
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     ros_params = {**params.as_dict(), "fog_mode": fog}
     if noise_sigma is not None:
         ros_params["noise_sigma"] = float(noise_sigma)
     body = {node_name: {"ros__parameters": ros_params}}
     text = "".join(f"# {line}\n" for line in comment.splitlines()) + yaml.safe_dump(body, sort_keys=False)
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    tmp.write_text(text)
-    os.replace(tmp, path)
-    return path
+    return write_text_atomic(path, text)

@@ -10,12 +10,12 @@
 from __future__ import annotations
 
 import html
-import os
 from pathlib import Path
 from typing import Optional, Sequence
 
 import numpy as np
 
+from .fileio import write_text_atomic
 from .params import RGB_NAMES, UNITS
 from .viz import _plt, save_figure
 
@@ -166,7 +166,4 @@ histogram pixels: {fit.hist_pixels}, colour model <b>{fit.space.model}</b>, fog 
 <h2>Parameters</h2>{_param_table(fit, truth)}
 <h2>Frames</h2><ul>{frames}</ul>{"<p>Skipped:</p><ul>" + skipped + "</ul>" if skipped else ""}
 </body></html>"""
-    tmp = out / ".index.html.tmp"
-    tmp.write_text(page)
-    os.replace(tmp, out / "index.html")
-    return out / "index.html"
+    return write_text_atomic(out / "index.html", page)

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Callable, Iterator, Optional
@@ -15,6 +14,7 @@ from typing import Callable, Iterator, Optional
 import numpy as np
 
 from .camera import CameraModel
+from .fileio import write_text_atomic
 from .params import UnderwaterParams
 
 __all__ = ["SensorNoise", "approach_trajectory", "add_sensor_noise", "truth_path", "synthesize_trial",
@@ -155,8 +155,5 @@ def synthesize_trial(out, n_frames: int = 20, seed: int = 0, params: UnderwaterP
         "effects": [getattr(e, "name", getattr(e, "__name__", repr(e))) for e in (effects or [])],
         "bag": str(bag_path),
     }
-    tp = truth_path(out)
-    tmp = tp.with_name(tp.name + ".tmp")
-    tmp.write_text(json.dumps(truth, indent=2))
-    os.replace(tmp, tp)
+    write_text_atomic(truth_path(out), json.dumps(truth, indent=2))
     return truth

@@ -1,10 +1,11 @@
 """Figures a person looks at: contact sheets of frames, renders, depth and masks (matplotlib, Agg)."""
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
+
+from .fileio import atomic_path
 
 __all__ = ["contact_sheet", "save_figure", "depth_image"]
 
@@ -20,13 +21,12 @@ def _plt():
 
 def save_figure(fig, path, dpi: int = 110) -> Path:
     """Save atomically (temp file + rename) and close the figure."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}{path.suffix}")
-    fig.savefig(tmp, dpi=dpi, bbox_inches="tight")
-    os.replace(tmp, path)
-    _plt().close(fig)
-    return path
+    try:
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp, dpi=dpi, bbox_inches="tight")
+    finally:
+        _plt().close(fig)
+    return Path(path)
 
 
 def depth_image(depth: np.ndarray) -> np.ma.MaskedArray:
