@@ -45,13 +45,13 @@ def _parse_params(text: str) -> UnderwaterParams:
 
 
 def _progress_bar(total: int, desc: str):
-    from tqdm import tqdm
+    """A ``progress(done, total)`` callback drawing :func:`uw_sil._shared.progress.progress_bar` on stderr."""
+    from ._shared.progress import progress_bar
 
-    bar = tqdm(total=total, desc=desc, unit="frame", file=sys.stderr, disable=None)
+    bar = progress_bar(total, desc, unit="frame", file=sys.stderr)
 
     def update(done, _total):
-        bar.n = done
-        bar.refresh()
+        bar.update(done - bar.n)
         if done >= _total:
             bar.close()
     return update
