@@ -51,10 +51,10 @@ def test_fit_writes_params_summary_and_report(bag, tmp_path, capsys):
 
 @pytest.mark.parametrize("args, message", [
     (["--frames", "0"], "must be >= 1"),
-    (["--color-model", "hsv", "--sim-noise", "loud"], "--sim-noise must be"),
+    (["--color-model", "hsv", "--sim-noise", "loud"], "--sim-noise: must be"),
 ])
 def test_fit_bad_arguments_are_clear_errors(bag, tmp_path, capsys, args, message):
-    assert main(["fit", "--bag", str(bag), "--out", str(tmp_path / "f.yaml"), *args]) == 1
+    assert main(["fit", "--bag", str(bag), "--out", str(tmp_path / "f.yaml"), *args]) == 2
     assert message in capsys.readouterr().err
     assert not (tmp_path / "f.yaml").exists()
 
@@ -66,7 +66,7 @@ def test_bag_without_poses_is_a_clear_error(tmp_path, capsys):
     cam = CameraModel.from_fov(32, 24)
     write_trial(tmp_path / "np.mcap", [Sample(1, np.zeros((24, 32, 3), np.uint8), cam, np.eye(4))],
                 pose_topic="/other/pose")
-    assert main(["fit", "--bag", str(tmp_path / "np.mcap"), "--out", str(tmp_path / "f.yaml")]) == 1
+    assert main(["fit", "--bag", str(tmp_path / "np.mcap"), "--out", str(tmp_path / "f.yaml")]) == 2
     err = capsys.readouterr().err
     assert "/panel/pose" in err and "/other/pose" in err
 
