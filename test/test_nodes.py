@@ -18,7 +18,9 @@ import numpy as np
 import pytest
 import yaml
 
-rclpy = pytest.importorskip("rclpy", reason="ROS 2 Python packages (the `ros` extra) are not installed")
+from conftest import import_or_skip  # noqa: E402  (skips locally, fails in CI when rclpy is missing)
+
+rclpy = import_or_skip("rclpy", reason="ROS 2 Python packages (the `ros` extra) are not installed")
 
 # rclpy's parameter machinery imports lark, which imports deprecated sre_* modules
 pytestmark = pytest.mark.filterwarnings("ignore:module 'sre_:DeprecationWarning")
