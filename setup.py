@@ -9,13 +9,13 @@ setup(
     name=package_name,
     version="0.1.0",
     packages=find_packages(exclude=["test", "test.*", "bench"]),
-    package_data={"uw_sil": ["models/*.glb"]},
+    package_data={"uw_sil.sim": ["models/*.glb"]},
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
         ("share/" + package_name + "/launch", glob("launch/*.launch.py")),
         ("share/" + package_name + "/config", glob("config/*.yaml") + glob("config/*.xml")),
-        ("share/" + package_name + "/models", glob("uw_sil/models/*.glb")),
+        ("share/" + package_name + "/models", glob("uw_sil/sim/models/*.glb")),
     ],
     python_requires=">=3.10",
     install_requires=[
@@ -30,14 +30,16 @@ setup(
         "cma>=3.3",
         "rosbags>=0.11.9",  # Stores.ROS2_KILTED, rosbag2 metadata version 9
         "mcap>=1.1",
-        # uw_sil.mcap_recover decompresses cut MCAP chunks itself (both also come with mcap).
+        # uw_sil.bags.mcap_recover decompresses cut MCAP chunks itself (both also come with mcap).
         "zstandard>=0.20",
         "lz4>=4.0",
         "matplotlib>=3.7",
-        # uw_sil.scene builds the panel texture as a PIL image (already pulled in by pyrender2).
+        # uw_sil.sim.scene builds the panel texture as a PIL image (already pulled in by pyrender2).
         "Pillow>=9.0",
         "PyYAML>=6.0",
         "tqdm>=4.60",
+        # SURF for the feature-match table (absent from every PyPI OpenCV wheel; MIT).
+        "mahotas>=1.4.19",
     ],
     extras_require={
         # ROS 2 Kilted from PyPI wheels; inside a sourced ROS 2 workspace these come from /opt/ros.

@@ -12,9 +12,9 @@ os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 
 import numpy as np  # noqa: E402
 
-from uw_sil.optics import PreparedRender, degrade  # noqa: E402
-from uw_sil.render import Renderer  # noqa: E402
-from uw_sil.scene import facing_pose  # noqa: E402
+from uw_sil.sim.optics import PreparedRender, degrade  # noqa: E402
+from uw_sil.sim.render import Renderer  # noqa: E402
+from uw_sil.sim.scene import facing_pose  # noqa: E402
 
 
 def median_ms(fn, n):

@@ -18,10 +18,10 @@ os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 import cma  # noqa: E402,F401  -- imported once here, outside the timings (its first import takes ~1.5 s)
 import numpy as np  # noqa: E402
 
-from uw_sil.backward import fit_frames, select_frames  # noqa: E402
-from uw_sil.bag import read_samples  # noqa: E402
-from uw_sil.render import Renderer  # noqa: E402
-from uw_sil.synth import DEFAULT_TRUTH, synthesize_trial  # noqa: E402
+from uw_sil.fit.backward import fit_frames, select_frames  # noqa: E402
+from uw_sil.bags import read_samples  # noqa: E402
+from uw_sil.sim.render import Renderer  # noqa: E402
+from uw_sil.bags.synth import DEFAULT_TRUTH, synthesize_trial  # noqa: E402
 
 
 def main():

@@ -17,13 +17,13 @@ os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 
 import numpy as np  # noqa: E402
 
-from uw_sil.backward import BackwardObjective, select_frames  # noqa: E402
-from uw_sil.bag import read_samples  # noqa: E402
-from uw_sil.camera import CameraModel  # noqa: E402
-from uw_sil.params import ParamSpace, UnderwaterParams  # noqa: E402
-from uw_sil.render import Renderer  # noqa: E402
-from uw_sil.synth import synthesize_trial  # noqa: E402
-from uw_sil.viz import _plt, save_figure  # noqa: E402
+from uw_sil.fit.backward import BackwardObjective, select_frames  # noqa: E402
+from uw_sil.bags import read_samples  # noqa: E402
+from uw_sil.sim.camera import CameraModel  # noqa: E402
+from uw_sil.sim.params import ParamSpace, UnderwaterParams  # noqa: E402
+from uw_sil.sim.render import Renderer  # noqa: E402
+from uw_sil.bags.synth import synthesize_trial  # noqa: E402
+from uw_sil.viz import pyplot, save_figure  # noqa: E402
 
 TRUTH = UnderwaterParams(a=(0.42, 0.11, 0.08), b=(0.06, 0.32, 0.42), rho_f=0.12)
 
@@ -52,7 +52,7 @@ def main():
             three = select_frames(samples, r, k=3, stride=4).frames
     ag = np.linspace(0.5, 1.5, args.grid)           # attenuation scale s
     rho = np.linspace(0.0, 0.3, args.grid)
-    plt = _plt()
+    plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.4))
     for ax, frames, label in ((axes[0], one, "K = 1"), (axes[1], three, "K = 3")):
         th = landscape(BackwardObjective(frames, ParamSpace("rgb")), ag, rho)

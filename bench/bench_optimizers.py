@@ -6,7 +6,7 @@ For every function and seed:
 
 * ``pso``: the paper's settings (20 particles, omega 0.4, phi_p = phi_g = 0.3, 100 iterations,
   i.e. at most 2020 evaluations; pyswarm may stop earlier on its minstep/minfunc rules);
-* ``cmaes``: defaults of :func:`uw_sil.optimize.optimize` with the same 2020-evaluation budget;
+* ``cmaes``: defaults of :func:`uw_sil.fit.optimize.optimize` with the same 2020-evaluation budget;
 * ``cmaes->pso``: CMA-ES with ``target`` = the PSO run's final (observed, noisy) best theta, i.e.
   "evaluations CMA-ES needs to reach what the paper's PSO ends with"; compared with the
   evaluations PSO itself needed to first reach that value.
@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from uw_sil.optimize import PSO_PAPER_SETTINGS, optimize  # noqa: E402
+from uw_sil.fit.optimize import PSO_PAPER_SETTINGS, optimize  # noqa: E402
 
 LO = np.zeros(7)
 HI = np.array([1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 0.5])

@@ -16,12 +16,12 @@ os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 
 import numpy as np  # noqa: E402
 
-from uw_sil.backward import fit_frames, select_frames  # noqa: E402
-from uw_sil.bag import read_samples  # noqa: E402
-from uw_sil.camera import CameraModel  # noqa: E402
-from uw_sil.params import UnderwaterParams  # noqa: E402
-from uw_sil.render import Renderer  # noqa: E402
-from uw_sil.synth import load_truth, synthesize_trial  # noqa: E402
+from uw_sil.fit.backward import fit_frames, select_frames  # noqa: E402
+from uw_sil.bags import read_samples  # noqa: E402
+from uw_sil.sim.camera import CameraModel  # noqa: E402
+from uw_sil.sim.params import UnderwaterParams  # noqa: E402
+from uw_sil.sim.render import Renderer  # noqa: E402
+from uw_sil.bags.synth import load_truth, synthesize_trial  # noqa: E402
 
 
 def random_truth(rng) -> UnderwaterParams:

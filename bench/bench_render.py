@@ -1,4 +1,4 @@
-"""Benchmark of uw_sil.render: time per 640x480 frame (colour + SEG pass + post-processing).
+"""Benchmark of uw_sil.sim.render: time per 640x480 frame (colour + SEG pass + post-processing).
 
 Run standalone::
 
@@ -35,9 +35,9 @@ def main(argv=None):
     args = ap.parse_args(argv)
 
     t0 = time.perf_counter()
-    from uw_sil.camera import CameraModel
-    from uw_sil.render import Renderer, _pyrender
-    from uw_sil.scene import add_seafloor, facing_pose, load_model
+    from uw_sil.sim.camera import CameraModel
+    from uw_sil.sim.render import Renderer, _pyrender
+    from uw_sil.sim.scene import add_seafloor, facing_pose, load_model
 
     t_import = time.perf_counter() - t0
     rss_start = rss_mb()
@@ -87,7 +87,7 @@ def main(argv=None):
     med = np.median(t_frame)
     print(f"uw_sil render benchmark: {args.width}x{args.height}, {len(renderer.node_names)} mesh nodes, "
           f"shading={args.shading}, seafloor={args.seafloor}")
-    print(f"  import uw_sil.render/scene  : {ms(t_import):8.1f} ms")
+    print(f"  import uw_sil.sim.render/scene  : {ms(t_import):8.1f} ms")
     print(f"  load model                  : {ms(t_load):8.1f} ms")
     print(f"  import pyrender/PyOpenGL    : {ms(t_gl_import):8.1f} ms")
     print(f"  context creation (Renderer) : {ms(t_create):8.1f} ms  (GL context + scene conversion)")

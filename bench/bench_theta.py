@@ -5,7 +5,7 @@ Run: ``.venv/bin/python bench/bench_theta.py``. Needs torch and piq for the comp
 
 What is measured (best of several repeats, wall clock, after a warm-up):
 
-* ours: :class:`uw_sil.theta.ThetaReference` built once for a real 640x480 underwater frame,
+* ours: :class:`uw_sil.metrics.theta.ThetaReference` built once for a real 640x480 underwater frame,
   then ``evaluate`` on a batch of 20 float32 RGB candidates (blur, noise, colour cast);
   per-candidate time for theta = (FSIMc + theta_2) / 2, with 1 and 2 scipy.fft workers;
 * piq: ``piq.fsim(ref, cand, data_range=255, chromatic=True)`` on float32 CPU tensors, torch
@@ -29,8 +29,8 @@ import numpy as np
 from PIL import Image
 from scipy.ndimage import gaussian_filter
 
-from uw_sil.fsim import fsim
-from uw_sil.theta import ThetaReference
+from uw_sil.metrics.fsim import fsim
+from uw_sil.metrics.theta import ThetaReference
 
 DATA = Path(os.environ.get("UW_SIL_SHARED_DATA") or Path(__file__).resolve().parents[2] / "shared" / "data")
 REAL = DATA / "real_underwater" / "suim_test" / "images" / "f_r_1965_.jpg"
@@ -89,9 +89,9 @@ def bench_ours(ref: np.ndarray, cands: np.ndarray, workers) -> dict:
     tref = ThetaReference(ref, workers=workers)
     ctor = time.perf_counter() - t0
     total = _best(lambda: tref.evaluate(cands))
-    planes = [tref._hist._to_planar(c).reshape((3,) + c.shape[:2]).copy() for c in cands]
-    t_fsim = _best(lambda: [tref._fsim._score_planar(p) for p in planes])
-    t_hist = _best(lambda: [tref._hist._score_planar(p.reshape(3, -1)) for p in planes])
+    planes = [tref._hist.to_planar(c).reshape((3,) + c.shape[:2]).copy() for c in cands]
+    t_fsim = _best(lambda: [tref._fsim.score_planar(p) for p in planes])
+    t_hist = _best(lambda: [tref._hist.score_planar(p.reshape(3, -1)) for p in planes])
     return dict(ctor=ctor, per=total / len(cands), fsim=t_fsim / len(cands), hist=t_hist / len(cands), tref=tref)
 
 

@@ -4,14 +4,14 @@
 Starts sim_camera and backward_fit (and bag_play when a bag is given): at dive start the first frames
 are fitted and the simulated camera is re-parameterized through its parameter services. With a bag the
 launch ends once the fit is done (backward_fit is required), unless keep_running:=true. The same graph
-is described in uw_sil.graph and started without ROS 2 launch by `uw-sil launch backward`.
+is described in uw_sil.nodes.graph and started without ROS 2 launch by `uw-sil launch backward`.
 """
 from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument, OpaqueFunction, SetEnvironmentVariable, Shutdown
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
-from uw_sil.graph import backward_graph, share_file
+from uw_sil.nodes.graph import backward_graph, share_file
 
 
 def _nodes(context):

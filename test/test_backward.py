@@ -4,12 +4,12 @@ import numpy as np
 import pytest
 import yaml
 
-from uw_sil.backward import (BackwardObjective, fit_frames, linear_start, select_frames, write_params_yaml)
-from uw_sil.bag import read_samples
-from uw_sil.camera import CameraModel
-from uw_sil.params import ParamSpace, UnderwaterParams
-from uw_sil.render import Renderer
-from uw_sil.synth import load_truth, synthesize_trial
+from uw_sil.fit.backward import (BackwardObjective, fit_frames, linear_start, select_frames, write_params_yaml)
+from uw_sil.bags import read_samples
+from uw_sil.sim.camera import CameraModel
+from uw_sil.sim.params import ParamSpace, UnderwaterParams
+from uw_sil.sim.render import Renderer
+from uw_sil.bags.synth import load_truth, synthesize_trial
 
 SMALL = CameraModel.from_fov(320, 240, 70.0)
 TRUTH = UnderwaterParams(a=(0.40, 0.12, 0.08), b=(0.07, 0.33, 0.43), rho_f=0.10)
@@ -91,7 +91,7 @@ def test_params_yaml_is_ros2_params_file(tmp_path):
 
 
 def test_frames_of_different_sizes_are_refused(trial):
-    from uw_sil.bag import Sample
+    from uw_sil.bags import Sample
 
     samples = list(read_samples(trial))[:2]
     small = CameraModel.from_fov(160, 120, 70.0)

@@ -1,4 +1,4 @@
-"""Tests of uw_sil.bag, uw_sil.mcap_recover and uw_sil.imgmsg: ROS 2 bag round trips, rclpy wire
+"""Tests of uw_sil.bags.reader, uw_sil.bags.mcap_recover and uw_sil.bags.imgmsg: ROS 2 bag round trips, rclpy wire
 compatibility, recovery of cut-off MCAP files, and clear errors for bad bags."""
 import logging
 import shutil
@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 import yaml
 
-from uw_sil.bag import (BagError, Sample, iter_messages, iter_raw, open_bag, read_samples, resolve_bag_path,
+from uw_sil.bags import (BagError, Sample, iter_messages, iter_raw, open_bag, read_samples, resolve_bag_path,
                          write_trial)
-from uw_sil.camera import CameraModel
-from uw_sil.imgmsg import SUPPORTED_ENCODINGS, image_to_rgb, rgb_to_image_fields
-from uw_sil.mcap_recover import McapScanReport, iter_mcap
-from uw_sil.transforms import pose_to_matrix
+from uw_sil.sim.camera import CameraModel
+from uw_sil.bags.imgmsg import SUPPORTED_ENCODINGS, image_to_rgb, rgb_to_image_fields
+from uw_sil.bags.mcap_recover import McapScanReport, iter_mcap
+from uw_sil.sim.transforms import pose_to_matrix
 
 W, H = 64, 48
 CAM = CameraModel.from_fov(W, H, 70.0)
@@ -218,7 +218,7 @@ def test_truncated_mcap_recovers_intact_frames(tmp_path, caplog):
         with AnyReader([half]) as r:
             list(r.messages())
 
-    with caplog.at_level(logging.WARNING, logger="uw_sil.bag"):
+    with caplog.at_level(logging.WARNING, logger="uw_sil.bags.reader"):
         stream = read_samples(half)
         got = list(stream)
     assert 8 <= len(got) <= 11
@@ -470,7 +470,7 @@ def test_distortion_is_warned_about(tmp_path, caplog):
     msgs = frame_msgs(ts, T0, np.zeros((H, W, 3), np.uint8).tobytes())
     msgs[1] = (msgs[1][0], msgs[1][1], T0, info_msg(ts, T0, d=[-0.2, 0.05, 0, 0, 0]))
     bag = write_raw_bag(tmp_path / "dist", msgs)
-    with caplog.at_level(logging.WARNING, logger="uw_sil.bag"):
+    with caplog.at_level(logging.WARNING, logger="uw_sil.bags.reader"):
         stream = read_samples(bag)
         assert len(list(stream)) == 1
     assert any("distortion" in w for w in stream.report.warnings)

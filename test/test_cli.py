@@ -60,8 +60,8 @@ def test_fit_bad_arguments_are_clear_errors(bag, tmp_path, capsys, args, message
 
 
 def test_bag_without_poses_is_a_clear_error(tmp_path, capsys):
-    from uw_sil.bag import Sample, write_trial
-    from uw_sil.camera import CameraModel
+    from uw_sil.bags import Sample, write_trial
+    from uw_sil.sim.camera import CameraModel
 
     cam = CameraModel.from_fov(32, 24)
     write_trial(tmp_path / "np.mcap", [Sample(1, np.zeros((24, 32, 3), np.uint8), cam, np.eye(4))],

@@ -1,7 +1,7 @@
 """Atomic outputs: whole or nothing."""
 import pytest
 
-from uw_sil.fileio import atomic_path, write_text_atomic
+from uw_sil._shared.fileio import atomic_path, write_text_atomic
 
 
 def test_written_whole_and_failed_writes_leave_nothing(tmp_path):

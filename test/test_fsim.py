@@ -7,7 +7,7 @@ from scipy.ndimage import gaussian_filter
 from scipy.signal import convolve2d
 
 from datapaths import SHARED_DATA
-from uw_sil.fsim import (
+from uw_sil.metrics.fsim import (
     FSIMReference,
     _box_downsample,
     _chroma_term,

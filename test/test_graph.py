@@ -1,4 +1,4 @@
-"""The pure parts of starting node graphs: uw_sil.graph (descriptions, command lines) and uw_sil.launcher
+"""The pure parts of starting node graphs: uw_sil.nodes.graph (descriptions, command lines) and uw_sil.nodes.launcher
 (process supervision), the latter with a fake interpreter standing in for the nodes (no ROS here)."""
 import io
 import os
@@ -10,8 +10,8 @@ import time
 
 import pytest
 
-from uw_sil import graph, launcher
-from uw_sil.graph import NodeSpec
+from uw_sil.nodes import graph, launcher
+from uw_sil.nodes.graph import NodeSpec
 
 
 def test_backward_graph_with_a_bag_ends_with_the_fit():

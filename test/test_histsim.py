@@ -6,7 +6,7 @@ import pytest
 from PIL import Image
 
 from datapaths import SHARED_DATA
-from uw_sil.histsim import (
+from uw_sil.metrics.histsim import (
     DEFAULT_BINS,
     HistogramReference,
     bhattacharyya_distance,

@@ -35,15 +35,15 @@ from sensor_msgs.msg import CameraInfo, Image  # noqa: E402
 from std_msgs.msg import String  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
-from uw_sil.backward import fit_bag  # noqa: E402
-from uw_sil.bag import iter_raw, open_bag  # noqa: E402
-from uw_sil.camera import CameraModel  # noqa: E402
-from uw_sil.imgmsg import depth_to_image_fields, image_to_rgb  # noqa: E402
-from uw_sil.params import RGB_NAMES, UnderwaterParams  # noqa: E402
-from uw_sil.scene import facing_pose  # noqa: E402
-from uw_sil.simcam import SimCamera  # noqa: E402
-from uw_sil.synth import synthesize_trial  # noqa: E402
-from uw_sil.transforms import matrix_to_pose  # noqa: E402
+from uw_sil.fit.backward import fit_bag  # noqa: E402
+from uw_sil.bags import iter_raw, open_bag  # noqa: E402
+from uw_sil.sim.camera import CameraModel  # noqa: E402
+from uw_sil.bags.imgmsg import depth_to_image_fields, image_to_rgb  # noqa: E402
+from uw_sil.sim.params import RGB_NAMES, UnderwaterParams  # noqa: E402
+from uw_sil.sim.scene import facing_pose  # noqa: E402
+from uw_sil.sim.simcam import SimCamera  # noqa: E402
+from uw_sil.bags.synth import synthesize_trial  # noqa: E402
+from uw_sil.sim.transforms import matrix_to_pose  # noqa: E402
 
 SMALL = CameraModel.from_fov(160, 120, 70.0)
 TRUTH = UnderwaterParams(a=(0.40, 0.12, 0.08), b=(0.07, 0.33, 0.43), rho_f=0.10)

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from uw_sil.noise import NoiseField, estimate_noise_sigma
+from uw_sil.sim.noise import NoiseField, estimate_noise_sigma
 
 
 def test_estimate_recovers_known_sigma_despite_edges():

@@ -4,7 +4,7 @@ import math
 import numpy as np
 import pytest
 
-from uw_sil.optics import PreparedRender, degrade, fog_factor, transmission
+from uw_sil.sim.optics import PreparedRender, degrade, fog_factor, transmission
 
 
 def _scene():

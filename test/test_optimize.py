@@ -1,11 +1,11 @@
-"""Tests of uw_sil.optimize: the batched PSO (pyswarm) / CMA-ES layer of the backward optimization."""
+"""Tests of uw_sil.fit.optimize: the batched PSO (pyswarm) / CMA-ES layer of the backward optimization."""
 import json
 import math
 
 import numpy as np
 import pytest
 
-from uw_sil.optimize import (
+from uw_sil.fit.optimize import (
     PSO_PAPER_SETTINGS,
     OptimResult,
     StopOptimization,

@@ -4,7 +4,7 @@ import colorsys
 import numpy as np
 import pytest
 
-from uw_sil.params import (HSV_NAMES, ParamSpace, UnderwaterParams, hsv_to_rgb, hsv_to_rgb_params,
+from uw_sil.sim.params import (HSV_NAMES, ParamSpace, UnderwaterParams, hsv_to_rgb, hsv_to_rgb_params,
                            rgb_to_hsv, rgb_to_hsv_params)
 
 

@@ -1,13 +1,13 @@
-"""Tests of uw_sil.render against analytic geometry (ray-plane intersections, projections)."""
+"""Tests of uw_sil.sim.render against analytic geometry (ray-plane intersections, projections)."""
 import math
 
 import numpy as np
 import pytest
 import trimesh
 
-from uw_sil import scene as S
-from uw_sil.camera import CameraModel
-from uw_sil.render import DEFAULT_ALBEDO, Renderer, RenderResult, _patch_context_key
+from uw_sil.sim import scene as S
+from uw_sil.sim.camera import CameraModel
+from uw_sil.sim.render import DEFAULT_ALBEDO, Renderer, RenderResult, _patch_context_key
 
 SMALL = CameraModel().scaled(0.25)  # 160x120, same field of view
 

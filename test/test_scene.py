@@ -1,12 +1,12 @@
-"""Tests of uw_sil.scene: the procedural panel, the shipped model, loading, labels and poses."""
+"""Tests of uw_sil.sim.scene: the procedural panel, the shipped model, loading, labels and poses."""
 import math
 
 import numpy as np
 import pytest
 import trimesh
 
-from uw_sil import scene as S
-from uw_sil.camera import CameraModel
+from uw_sil.sim import scene as S
+from uw_sil.sim.camera import CameraModel
 
 EXPECTED_NODES = {
     "plate_body", "plate_face",
@@ -60,7 +60,7 @@ def test_build_is_deterministic(panel):
 
 
 def test_shipped_glb_matches_build_panel(panel):
-    assert S.default_model_path().is_file(), "run `python -m uw_sil.scene` to write the shipped model"
+    assert S.default_model_path().is_file(), "run `python -m uw_sil.sim.scene` to write the shipped model"
     shipped = S.load_model()
     assert set(shipped.graph.nodes_geometry) == set(panel.graph.nodes_geometry)
     for n in panel.graph.nodes_geometry:

@@ -2,11 +2,11 @@
 import numpy as np
 import pytest
 
-from uw_sil.camera import CameraModel
-from uw_sil.optics import degrade
-from uw_sil.params import UnderwaterParams
-from uw_sil.scene import facing_pose
-from uw_sil.simcam import SimCamera
+from uw_sil.sim.camera import CameraModel
+from uw_sil.sim.optics import degrade
+from uw_sil.sim.params import UnderwaterParams
+from uw_sil.sim.scene import facing_pose
+from uw_sil.sim.simcam import SimCamera
 
 CAM = CameraModel.from_fov(80, 60)
 

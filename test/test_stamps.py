@@ -1,10 +1,10 @@
-"""Tests of uw_sil.stamps: offline pairing against brute force, online synchronizer against offline."""
+"""Tests of uw_sil.bags.stamps: offline pairing against brute force, online synchronizer against offline."""
 import random
 
 import numpy as np
 import pytest
 
-from uw_sil.stamps import StampSynchronizer, SyncStats, pair_by_stamp, seconds_to_ns
+from uw_sil.bags.stamps import StampSynchronizer, SyncStats, pair_by_stamp, seconds_to_ns
 
 MS = 1_000_000
 

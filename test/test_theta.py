@@ -6,9 +6,9 @@ from PIL import Image
 from scipy.ndimage import gaussian_filter
 
 from datapaths import SHARED_DATA
-from uw_sil.fsim import fsim
-from uw_sil.histsim import hsv_histogram_similarity
-from uw_sil.theta import ThetaReference, ThetaScores, mean_theta
+from uw_sil.metrics.fsim import fsim
+from uw_sil.metrics.histsim import hsv_histogram_similarity
+from uw_sil.metrics.theta import ThetaReference, ThetaScores, mean_theta
 
 UW = SHARED_DATA / "real_underwater"
 

@@ -19,14 +19,14 @@ from pathlib import Path
 
 import numpy as np
 
-from .params import RGB_NAMES, UnderwaterParams
+from .sim.params import RGB_NAMES, UnderwaterParams
 
 __all__ = ["main", "build_parser"]
 
 
 def _parse_params(text: str) -> UnderwaterParams:
     """``a_r=0.4,a_g=0.1,...`` (names from RGB_NAMES, missing ones from the default truth) or 7 numbers."""
-    from .synth import DEFAULT_TRUTH
+    from .bags.synth import DEFAULT_TRUTH
 
     text = text.strip()
     if "=" not in text:
@@ -58,8 +58,8 @@ def _progress_bar(total: int, desc: str):
 
 
 def cmd_synth(args) -> int:
-    from .camera import CameraModel
-    from .synth import synthesize_trial, truth_path
+    from .sim.camera import CameraModel
+    from .bags.synth import synthesize_trial, truth_path
 
     out = Path(args.out)
     params = _parse_params(args.params) if args.params else None
@@ -78,8 +78,8 @@ def cmd_synth(args) -> int:
 
 
 def _contact_sheet(bag: Path, png: Path, rows: int = 4):
-    from .bag import open_bag, read_samples
-    from .render import Renderer
+    from .bags import open_bag, read_samples
+    from .sim.render import Renderer
     from .viz import contact_sheet, save_figure
 
     n = open_bag(bag).topics["/camera/image_raw"].count
@@ -100,7 +100,7 @@ def _contact_sheet(bag: Path, png: Path, rows: int = 4):
 
 
 def cmd_info(args) -> int:
-    from .bag import open_bag
+    from .bags import open_bag
 
     info = open_bag(args.bag)
     print(info.describe() if hasattr(info, "describe") else info)
@@ -127,8 +127,8 @@ def _sim_noise(text: str):
 
 
 def cmd_fit(args) -> int:
-    from .backward import fit_bag, write_json_atomic, write_params_yaml
-    from .report import write_report
+    from .fit.backward import fit_bag, write_json_atomic, write_params_yaml
+    from .fit.report import write_report
 
     methods = [args.optimizer] + ([m for m in ("pso", "cmaes") if m != args.optimizer] if args.compare else [])
     fits = []
@@ -162,7 +162,7 @@ def cmd_fit(args) -> int:
     if args.report:
         truth = None
         try:
-            from .synth import load_truth
+            from .bags.synth import load_truth
 
             truth = load_truth(args.bag)["params"].as_dict()
         except FileNotFoundError:
@@ -251,7 +251,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--no-compare", dest="compare", action="store_false")
     d.set_defaults(func=cmd_demo)
 
-    from .launcher import add_commands as add_launch_commands  # `uw-sil launch`, `uw-sil play`
+    from .nodes.launcher import add_commands as add_launch_commands  # `uw-sil launch`, `uw-sil play`
     add_launch_commands(sub)
     return p
 

@@ -5,12 +5,13 @@ from pathlib import Path
 
 import numpy as np
 
-from .fileio import atomic_path
+from ._shared.fileio import atomic_path
 
-__all__ = ["contact_sheet", "save_figure", "depth_image"]
+__all__ = ["contact_sheet", "depth_image", "pyplot", "save_figure"]
 
 
-def _plt():
+def pyplot():
+    """matplotlib.pyplot on the Agg backend (headless; imported on first use)."""
     import matplotlib
 
     matplotlib.use("Agg", force=False)
@@ -25,7 +26,7 @@ def save_figure(fig, path, dpi: int = 110) -> Path:
         with atomic_path(path) as tmp:
             fig.savefig(tmp, dpi=dpi, bbox_inches="tight")
     finally:
-        _plt().close(fig)
+        pyplot().close(fig)
     return Path(path)
 
 
@@ -41,9 +42,9 @@ def contact_sheet(rows, title: str = ""):
     Parameters
     ----------
     rows : iterable of (label, image_uint8, render)
-        ``render`` has ``rgb``, ``depth`` and ``labels`` (a :class:`uw_sil.render.RenderResult`).
+        ``render`` has ``rgb``, ``depth`` and ``labels`` (a :class:`uw_sil.sim.render.RenderResult`).
     """
-    plt = _plt()
+    plt = pyplot()
     rows = list(rows)
     if not rows:
         raise ValueError("contact sheet needs at least one frame")

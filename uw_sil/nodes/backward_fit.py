@@ -2,9 +2,9 @@
 re-parameterize the ``sim_camera`` node through its parameter services.
 
 Subscribes ``camera/image_raw`` (Image), ``camera/camera_info`` (CameraInfo), ``panel/pose``
-(PoseStamped), paired by stamp (:class:`uw_sil.stamps.StampSynchronizer`). The first ``frames``
-usable frames (:class:`uw_sil.backward.FrameSelector`) are fitted in a worker thread
-(:func:`uw_sil.backward.fit_frames`); the result is sent atomically to
+(PoseStamped), paired by stamp (:class:`uw_sil.bags.stamps.StampSynchronizer`). The first ``frames``
+usable frames (:class:`uw_sil.fit.backward.FrameSelector`) are fitted in a worker thread
+(:func:`uw_sil.fit.backward.fit_frames`); the result is sent atomically to
 ``<sim_node>/set_parameters_atomically`` and optionally written as a parameters YAML.
 
 Publishes ``~/status`` (std_msgs/String, transient local: ``collecting ...``, ``fitting ...``, then
@@ -32,12 +32,12 @@ from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import Float64, String
 from std_srvs.srv import Trigger
 
-from ..backward import FrameSelector, fit_frames, write_params_yaml
-from ..bag import Sample
-from ..camera import CameraModel
-from ..imgmsg import image_to_rgb
-from ..stamps import StampSynchronizer
-from ..transforms import pose_to_matrix
+from ..fit.backward import FrameSelector, fit_frames, write_params_yaml
+from ..bags import Sample
+from ..sim.camera import CameraModel
+from ..bags.imgmsg import image_to_rgb
+from ..bags.stamps import StampSynchronizer
+from ..sim.transforms import pose_to_matrix
 from . import run_node
 
 
@@ -66,7 +66,7 @@ class BackwardFitNode(Node):
         self.pub_status = self.create_publisher(String, "~/status", latched)
         self.pub_theta = self.create_publisher(Float64, "~/theta", 10)
         self.sim_params = AsyncParameterClient(self, self.get_parameter("sim_node").value)
-        from ..render import Renderer
+        from ..sim.render import Renderer
 
         self.renderer = Renderer(self.get_parameter("model_path").value or None)
         self._lock = threading.Lock()
@@ -239,7 +239,7 @@ def _spin(node) -> int:
 
 
 def main(args=None):
-    return run_node(BackwardFitNode, _spin, args=args)
+    return run_node(BackwardFitNode, _spin, args=args, name="backward_fit", doc=__doc__)
 
 
 if __name__ == "__main__":

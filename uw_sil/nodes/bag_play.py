@@ -39,7 +39,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rosgraph_msgs.msg import Clock
 from std_srvs.srv import Trigger
 
-from ..bag import iter_raw, open_bag
+from ..bags import iter_raw, open_bag
 from . import run_node
 
 PLAYBACK_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE,
@@ -230,7 +230,8 @@ def _spin(node) -> int:
 
 
 def main(args=None):
-    return run_node(BagPlayNode, _spin, args=args, name="bag_play", user_errors=(ValueError, FileNotFoundError))
+    return run_node(BagPlayNode, _spin, args=args, name="bag_play", user_errors=(ValueError, FileNotFoundError),
+                    doc=__doc__)
 
 
 if __name__ == "__main__":

@@ -25,11 +25,11 @@ from rclpy.qos import qos_profile_sensor_data
 from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import CameraInfo, Image
 
-from ..camera import CameraModel
-from ..imgmsg import depth_to_image_fields, rgb_to_image_fields
-from ..params import RGB_NAMES, UNITS, UnderwaterParams
-from ..simcam import SimCamera
-from ..transforms import pose_to_matrix
+from ..sim.camera import CameraModel
+from ..bags.imgmsg import depth_to_image_fields, rgb_to_image_fields
+from ..sim.params import RGB_NAMES, UNITS, UnderwaterParams
+from ..sim.simcam import SimCamera
+from ..sim.transforms import pose_to_matrix
 from . import run_node
 
 _RANGES = {"a": (0.0, 5.0), "b": (0.0, 1.0), "rho": (0.0, 5.0)}
@@ -123,7 +123,7 @@ class SimCameraNode(Node):
 
 
 def main(args=None):
-    return run_node(SimCameraNode, args=args)
+    return run_node(SimCameraNode, args=args, name="sim_camera", doc=__doc__)
 
 
 if __name__ == "__main__":

@@ -14,7 +14,7 @@ picks the storage. Readers here accept a bag directory, its ``metadata.yaml``, o
 Messages are (de)serialized with ``rosbags`` in CDR, rclpy's wire format, with the message
 definitions of ROS 2 Kilted for writing and the bag's own definitions for reading.
 
-Cut-off MCAP files (recorder lost power) are read by :mod:`uw_sil.mcap_recover`, which yields every
+Cut-off MCAP files (recorder lost power) are read by :mod:`uw_sil.bags.mcap_recover`, which yields every
 complete message; the loss is reported in a :class:`ReadReport` (``.report`` of the iterators
 returned here) and logged as a warning. A damaged sqlite3 file is read best-effort: messages are
 returned until SQLite reports the damage, which is then recorded in the report (SQLite returns
@@ -23,69 +23,31 @@ messages in time order, so what is lost is not necessarily only the end).
 from __future__ import annotations
 
 import logging
-import math
 import re
-import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterable, Iterator, NamedTuple
+from typing import Iterator, NamedTuple
 
 import numpy as np
 import yaml
 
-from .camera import CameraModel
+from ..sim.camera import CameraModel
+from ..sim.transforms import pose_to_matrix
 from .imgmsg import compressed_to_rgb, image_to_rgb
 from .mcap_recover import McapFormatError, McapScanReport, iter_mcap, read_mcap_summary
+from .records import (CAMERA_INFO_TYPE, COMPRESSED_IMAGE_TYPE, IMAGE_TYPE, POSE_TYPE, STORAGE_SUFFIX, BagError,
+                      Sample)
 from .stamps import StampSynchronizer, SyncStats
-from .transforms import matrix_to_pose, pose_to_matrix
 
 __all__ = [
-    "Sample", "BagError", "TopicInfo", "ReadReport", "BagInfo", "RawMessage", "write_trial", "open_bag",
-    "iter_raw", "iter_messages", "read_samples", "resolve_bag_path", "IMAGE_TYPE", "COMPRESSED_IMAGE_TYPE",
-    "CAMERA_INFO_TYPE", "POSE_TYPE", "TF_TYPE",
+    "TopicInfo", "ReadReport", "BagInfo", "RawMessage", "open_bag", "iter_raw", "iter_messages", "read_samples",
+    "resolve_bag_path",
 ]
 
 log = logging.getLogger(__name__)
 
-IMAGE_TYPE = "sensor_msgs/msg/Image"
-COMPRESSED_IMAGE_TYPE = "sensor_msgs/msg/CompressedImage"
-CAMERA_INFO_TYPE = "sensor_msgs/msg/CameraInfo"
-POSE_TYPE = "geometry_msgs/msg/PoseStamped"
-TF_TYPE = "tf2_msgs/msg/TFMessage"
-
-_STORAGE_SUFFIX = {"mcap": ".mcap", "sqlite3": ".db3"}
 _SQLITE_MAGIC = b"SQLite format 3\x00"
 _MCAP_MAGIC = b"\x89MCAP0\r\n"
-_ROSBAG2_VERSION = 9  # metadata.yaml version of Jazzy / Kilted
-
-
-class BagError(ValueError):
-    """A bag cannot be read or written as asked (not a bag, missing topic, bad message...)."""
-
-
-@dataclass
-class Sample:
-    """One time-synchronized camera frame of a trial.
-
-    Attributes
-    ----------
-    stamp_ns : int
-        Header stamp of the image, nanoseconds.
-    image : ndarray
-        (H, W, 3) uint8, RGB.
-    camera : CameraModel
-        Intrinsics from the paired ``camera_info``.
-    pose : ndarray
-        4x4 float64 ``T_cam_panel``: the panel frame expressed in the camera optical frame.
-    frame_id : str
-        The camera optical frame (image ``header.frame_id``).
-    """
-
-    stamp_ns: int
-    image: np.ndarray
-    camera: CameraModel
-    pose: np.ndarray
-    frame_id: str = "camera_optical_frame"
 
 
 @dataclass(frozen=True)
@@ -287,7 +249,7 @@ def _layout(path) -> _Layout:
                 rel = list(meta["relative_file_paths"])
             except (yaml.YAMLError, OSError, KeyError, TypeError) as exc:
                 raise BagError(f"{meta_path} is not a readable rosbag2 metadata file: {exc!r}") from None
-            if storage not in _STORAGE_SUFFIX:
+            if storage not in STORAGE_SUFFIX:
                 raise BagError(f"{p}: storage {storage!r} is not supported (supported: mcap, sqlite3)")
             files = [p / Path(x).name for x in rel]
             missing = [str(f) for f in files if not f.exists()]
@@ -299,7 +261,7 @@ def _layout(path) -> _Layout:
                                f"`ros2 bag convert` first (MCAP's own chunk compression is supported)")
             return _Layout(p, storage, files, meta)
         found = {s: sorted((f for f in p.iterdir() if f.suffix == suf and f.is_file()), key=_split_index)
-                 for s, suf in _STORAGE_SUFFIX.items()}
+                 for s, suf in STORAGE_SUFFIX.items()}
         kinds = [s for s, fs in found.items() if fs]
         if not kinds:
             raise BagError(f"{p} is not a ROS 2 bag: no metadata.yaml and no .mcap or .db3 file in it")
@@ -760,7 +722,7 @@ def read_samples(path, image_topic: str = "/camera/image_raw", info_topic: str =
         accepts the nearest camera_info however far.
     lateness : float
         Out-of-order tolerance of header stamps within a topic, seconds (see
-        :class:`~uw_sil.stamps.StampSynchronizer`).
+        :class:`~uw_sil.bags.stamps.StampSynchronizer`).
     queue_size : int
         Most images kept waiting for their partners.
     check_frames : bool
@@ -816,182 +778,3 @@ def read_samples(path, image_topic: str = "/camera/image_raw", info_topic: str =
                         layout.root, sync.stats.dropped, sync.stats.received[0])
 
     return _Stream(gen(), rep)
-
-
-# --------------------------------------------------------------------------------------------------
-# Writing
-
-
-def _bag_dir_and_storage(path, storage: str | None) -> tuple[Path, str]:
-    p = Path(path)
-    by_suffix = {".mcap": "mcap", ".db3": "sqlite3"}.get(p.suffix)
-    if storage is not None and storage not in _STORAGE_SUFFIX:
-        raise ValueError(f"storage must be 'mcap' or 'sqlite3', got {storage!r}")
-    if by_suffix is not None:
-        if storage is not None and storage != by_suffix:
-            raise ValueError(f"output {p.name} asks for {by_suffix} storage but storage={storage!r}")
-        d = p.with_suffix("")
-        if not d.name:
-            raise ValueError(f"cannot name a bag after {p}")
-        return d, by_suffix
-    return p, storage or "mcap"
-
-
-def _looks_like_bag_dir(d: Path) -> bool:
-    """Only metadata.yaml and storage files (and SQLite side files) in it."""
-    return d.is_dir() and all(
-        f.is_file() and (f.name == "metadata.yaml" or f.suffix in (".mcap", ".db3")
-                         or f.name.endswith((".db3-shm", ".db3-wal", ".db3-journal")))
-        for f in d.iterdir())
-
-
-def _check_sample(s: Sample, i: int) -> tuple[np.ndarray, np.ndarray]:
-    if not isinstance(s, Sample):
-        raise TypeError(f"sample {i} is a {type(s).__name__}, expected uw_sil.bag.Sample")
-    if isinstance(s.stamp_ns, bool) or not isinstance(s.stamp_ns, (int, np.integer)) or not 0 <= s.stamp_ns < 2**63:
-        raise ValueError(f"sample {i}: stamp_ns must be an integer in [0, 2**63), got {s.stamp_ns!r}")
-    img = np.asarray(s.image)
-    if img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:
-        raise ValueError(f"sample {i}: image must be (H, W, 3) uint8 RGB, got {img.dtype} {img.shape}")
-    if not isinstance(s.camera, CameraModel):
-        raise TypeError(f"sample {i}: camera must be a CameraModel")
-    if img.shape[:2] != s.camera.shape:
-        raise ValueError(f"sample {i}: image is {img.shape[1]}x{img.shape[0]} but the camera is "
-                         f"{s.camera.width}x{s.camera.height}")
-    T = np.asarray(s.pose, dtype=float)
-    if T.shape != (4, 4) or not np.isfinite(T).all():
-        raise ValueError(f"sample {i}: pose must be a finite 4x4 matrix, got shape {T.shape}")
-    R = T[:3, :3]
-    if (not np.allclose(R.T @ R, np.eye(3), atol=1e-6) or not math.isclose(np.linalg.det(R), 1.0, abs_tol=1e-6)
-            or not np.allclose(T[3], [0, 0, 0, 1])):
-        raise ValueError(f"sample {i}: pose is not a rigid transform (rotation not orthonormal or bad last row)")
-    return img, T
-
-
-def write_trial(path, samples: Iterable[Sample], storage: str | None = None,
-                image_topic: str = "/camera/image_raw", info_topic: str = "/camera/camera_info",
-                pose_topic: str = "/panel/pose", write_tf: bool = True, camera_frame: str | None = None,
-                panel_frame: str = "panel", tf_topic: str = "/tf", overwrite: bool = False) -> Path:
-    """Write samples to a ROS 2 bag that ``ros2 bag play`` accepts (streaming).
-
-    Parameters
-    ----------
-    path : str or Path
-        ``trial.mcap`` or ``trial.db3`` write the bag directory ``trial/`` (with ``trial/trial.mcap``
-        or ``trial/trial.db3`` and ``metadata.yaml``), the suffix choosing the storage; a path
-        without these suffixes is the bag directory itself.
-    samples : iterable of Sample
-        Consumed one at a time (a generator of rendered frames is never held in memory).
-    storage : {'mcap', 'sqlite3'}, optional
-        Default: from the suffix, else ``'mcap'``. Must agree with the suffix.
-    image_topic, info_topic, pose_topic : str
-        ``sensor_msgs/Image`` (rgb8), ``sensor_msgs/CameraInfo`` (plumb_bob, zero distortion,
-        identity R), ``geometry_msgs/PoseStamped`` (panel pose in the camera optical frame). All
-        three share the sample's stamp, as header stamp and as bag receive time.
-    write_tf : bool
-        Also write ``tf2_msgs/TFMessage`` on ``tf_topic``: ``camera_frame -> panel_frame``.
-    camera_frame : str, optional
-        ``header.frame_id`` of all messages; default each sample's ``frame_id``.
-    panel_frame : str
-        ``child_frame_id`` of the transform.
-    overwrite : bool
-        Replace an existing bag directory (only if it holds nothing but bag files).
-
-    Returns
-    -------
-    Path
-        The bag directory.
-
-    Notes
-    -----
-    Samples are validated as they come (RGB uint8 of the camera's size, rigid 4x4 pose, integer
-    stamp). If a sample is invalid or ``samples`` raises, the exception propagates and the partial
-    bag directory is removed (``rosbags`` would leave it without ``metadata.yaml`` and without the
-    frames still buffered in its last chunk or transaction).
-    """
-    from rosbags.rosbag2 import StoragePlugin, Writer
-    from rosbags.typesys import Stores, get_typestore
-
-    bag_dir, storage = _bag_dir_and_storage(path, storage)
-    topics = [image_topic, info_topic, pose_topic] + ([tf_topic] if write_tf else [])
-    if len(set(topics)) != len(topics):
-        raise ValueError(f"topics must differ, got {topics}")
-    if camera_frame is not None and not camera_frame:
-        raise ValueError("camera_frame must be a non-empty frame name")
-    if write_tf and not panel_frame:
-        raise ValueError("panel_frame must be a non-empty frame name")
-    it = iter(samples)
-    first = next(it, None)
-    if first is None:
-        raise ValueError("write_trial got no samples")
-    if bag_dir.exists():
-        if not overwrite:
-            raise FileExistsError(f"{bag_dir} exists (pass overwrite=True to replace it)")
-        if not _looks_like_bag_dir(bag_dir):
-            raise FileExistsError(f"{bag_dir} exists and holds files that are not bag files: not replacing it")
-        shutil.rmtree(bag_dir)
-    bag_dir.parent.mkdir(parents=True, exist_ok=True)
-
-    ts = get_typestore(Stores.ROS2_KILTED)
-    plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
-    opened: list = []  # set once the writer has created bag_dir: only then is it ours to remove
-    try:
-        _write(Writer(bag_dir, version=_ROSBAG2_VERSION, storage_plugin=plugin), opened, ts, first, it,
-               image_topic, info_topic, pose_topic, tf_topic if write_tf else None, camera_frame, panel_frame)
-    except BaseException:
-        if opened:
-            shutil.rmtree(bag_dir, ignore_errors=True)
-        raise
-    return bag_dir
-
-
-def _write(writer, opened, ts, first, it, image_topic, info_topic, pose_topic, tf_topic, camera_frame, panel_frame):
-    T_ = ts.types
-    Header, Time = T_["std_msgs/msg/Header"], T_["builtin_interfaces/msg/Time"]
-    Image, CameraInfo, ROI = T_[IMAGE_TYPE], T_[CAMERA_INFO_TYPE], T_["sensor_msgs/msg/RegionOfInterest"]
-    PoseStamped, Pose = T_[POSE_TYPE], T_["geometry_msgs/msg/Pose"]
-    Point, Quaternion, Vector3 = (T_["geometry_msgs/msg/Point"], T_["geometry_msgs/msg/Quaternion"],
-                                  T_["geometry_msgs/msg/Vector3"])
-    TransformStamped, Transform, TFMessage = (T_["geometry_msgs/msg/TransformStamped"],
-                                              T_["geometry_msgs/msg/Transform"], T_[TF_TYPE])
-    with writer as w:
-        opened.append(True)
-        w.set_custom_data("generator", "uw_sil.bag.write_trial")
-        c_img = w.add_connection(image_topic, IMAGE_TYPE, typestore=ts)
-        c_info = w.add_connection(info_topic, CAMERA_INFO_TYPE, typestore=ts)
-        c_pose = w.add_connection(pose_topic, POSE_TYPE, typestore=ts)
-        c_tf = w.add_connection(tf_topic, TF_TYPE, typestore=ts) if tf_topic is not None else None
-        i = 0
-        for s in _chain(first, it):
-            img, T = _check_sample(s, i)
-            frame = camera_frame if camera_frame is not None else s.frame_id
-            if not frame:
-                raise ValueError(f"sample {i} has an empty frame_id (and no camera_frame was given)")
-            t = int(s.stamp_ns)
-            hdr = Header(stamp=Time(sec=t // 1_000_000_000, nanosec=t % 1_000_000_000), frame_id=frame)
-            h, wd = img.shape[:2]
-            img_msg = Image(header=hdr, height=h, width=wd, encoding="rgb8", is_bigendian=0, step=3 * wd,
-                            data=np.ascontiguousarray(img).reshape(-1))
-            cam = s.camera
-            info_msg = CameraInfo(header=hdr, height=cam.height, width=cam.width, distortion_model="plumb_bob",
-                                  d=np.zeros(5), k=cam.K.reshape(-1), r=np.eye(3).reshape(-1), p=cam.P.reshape(-1),
-                                  binning_x=0, binning_y=0,
-                                  roi=ROI(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False))
-            pos, quat = matrix_to_pose(T)
-            pose_msg = PoseStamped(header=hdr, pose=Pose(position=Point(x=pos[0], y=pos[1], z=pos[2]),
-                                                         orientation=Quaternion(x=quat[0], y=quat[1], z=quat[2],
-                                                                                w=quat[3])))
-            w.write(c_img, t, ts.serialize_cdr(img_msg, IMAGE_TYPE))
-            w.write(c_info, t, ts.serialize_cdr(info_msg, CAMERA_INFO_TYPE))
-            w.write(c_pose, t, ts.serialize_cdr(pose_msg, POSE_TYPE))
-            if c_tf is not None:
-                tf = TransformStamped(header=hdr, child_frame_id=panel_frame,
-                                      transform=Transform(translation=Vector3(x=pos[0], y=pos[1], z=pos[2]),
-                                                          rotation=pose_msg.pose.orientation))
-                w.write(c_tf, t, ts.serialize_cdr(TFMessage(transforms=[tf]), TF_TYPE))
-            i += 1
-
-
-def _chain(first, rest):
-    yield first
-    yield from rest

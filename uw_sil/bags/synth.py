@@ -13,9 +13,9 @@ from typing import Callable, Iterator, Optional
 
 import numpy as np
 
-from .camera import CameraModel
-from .fileio import write_text_atomic
-from .params import UnderwaterParams
+from ..sim.camera import CameraModel
+from .._shared.fileio import write_text_atomic
+from ..sim.params import UnderwaterParams
 
 __all__ = ["SensorNoise", "approach_trajectory", "add_sensor_noise", "truth_path", "synthesize_trial",
            "load_truth", "DEFAULT_TRUTH"]
@@ -54,7 +54,7 @@ def approach_trajectory(n_frames: int, start_m: float = 4.0, end_m: float = 1.2,
     Range decreases smoothly from ``start_m`` to ``end_m`` while the vehicle sways and yaws a little
     (a few centimetres and degrees, as a station-keeping ROV does).
     """
-    from .scene import facing_pose
+    from ..sim.scene import facing_pose
 
     if n_frames < 1:
         raise ValueError("need at least one frame")
@@ -108,7 +108,7 @@ def synthesize_trial(out, n_frames: int = 20, seed: int = 0, params: UnderwaterP
     Parameters
     ----------
     out : path
-        Bag to write (see :func:`uw_sil.bag.write_trial` for the layout: ``trial.mcap`` becomes the bag
+        Bag to write (see :func:`uw_sil.bags.writer.write_trial` for the layout: ``trial.mcap`` becomes the bag
         directory ``trial/`` with ``trial/trial.mcap``; the truth goes to ``trial.truth.json``).
     effects : list of callables, optional
         Extra physics applied to each degraded float frame, ``effect(img, render) -> img`` (used by
@@ -120,8 +120,9 @@ def synthesize_trial(out, n_frames: int = 20, seed: int = 0, params: UnderwaterP
     dict
         The ground truth written to the sidecar (with ``params`` as a plain dict).
     """
-    from .bag import Sample, write_trial
-    from .simcam import SimCamera
+    from .records import Sample
+    from .writer import write_trial
+    from ..sim.simcam import SimCamera
 
     if n_frames < 1:
         raise ValueError("n_frames must be >= 1")

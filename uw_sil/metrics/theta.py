@@ -1,7 +1,7 @@
 """The backward-optimization criterion theta = (theta_1 + theta_2) / 2 (paper Sec. 3.3, Eq. 4).
 
-theta_1 is FSIMc (:mod:`uw_sil.fsim`, a port of ``FeatureSIM.m``) and theta_2 the HSV
-region-histogram similarity (:mod:`uw_sil.histsim`, ``1 - median distance``; see there for the
+theta_1 is FSIMc (:mod:`uw_sil.metrics.fsim`, a port of ``FeatureSIM.m``) and theta_2 the HSV
+region-histogram similarity (:mod:`uw_sil.metrics.histsim`, ``1 - median distance``; see there for the
 corrected sign of the paper's Eq. 3/4). Both are similarities in [0, 1], so the optimizer
 maximizes theta.
 
@@ -9,6 +9,14 @@ One real reference frame is compared with many simulated candidates: :class:`The
 does all reference-only work (phase congruency, gradient magnitude and chroma of the
 reference, its region histograms) once in the constructor and then scores candidate stacks;
 :func:`mean_theta` averages theta over several reference frames (a dive's first K frames).
+
+References
+----------
+.. [1] O. Álvarez-Tuñón, A. Jardón and C. Balaguer, "Generation and Processing of Simulated
+   Underwater Images for Infrastructure Visual Inspection with UUVs", Sensors 19(24), 5497, 2019,
+   doi:10.3390/s19245497. ("the paper" throughout uw_sil.)
+.. [2] L. Zhang, L. Zhang, X. Mou and D. Zhang, "FSIM: A Feature Similarity Index for Image Quality
+   Assessment", IEEE Trans. Image Processing 20(8), 2378-2386, 2011 (theta_1 = FSIMc).
 """
 from __future__ import annotations
 
@@ -16,7 +24,8 @@ from typing import NamedTuple, Sequence
 
 import numpy as np
 
-from .fsim import FSIMReference, _check_image, _check_values
+from .._shared.checks import check_image, check_values
+from .fsim import FSIMReference
 from .histsim import HistogramReference
 
 __all__ = ["ThetaReference", "ThetaScores", "mean_theta"]
@@ -46,7 +55,7 @@ class ThetaReference:
     mask : ndarray of bool, shape (H, W), optional
         Pixels that count in both terms (e.g. to exclude an overlay or the vehicle's own
         parts): FSIMc pools over them (at its downsampled grid), theta_2 histograms count only
-        them. ``None``: all pixels, and theta_1 equals :func:`uw_sil.fsim.fsim` exactly.
+        them. ``None``: all pixels, and theta_1 equals :func:`uw_sil.metrics.fsim.fsim` exactly.
     hist_mask : ndarray of bool (H, W), or a sequence of them, optional
         Pixels that count in theta_2 only (overrides ``mask`` there). With several masks,
         theta_2 is the mean of the per-mask theta_2 values. The backward optimizer passes the
@@ -90,7 +99,7 @@ class ThetaReference:
         dtype=np.float32,
         workers=None,
     ):
-        _check_image(reference, "reference")
+        check_image(reference, "reference")
         if reference.ndim != 3:
             raise ValueError(f"reference must be an RGB image (H, W, 3), got shape {reference.shape}")
         self.shape = reference.shape
@@ -123,7 +132,7 @@ class ThetaReference:
             )
         if candidates.shape[0] == 0:
             raise ValueError("candidates is an empty stack")
-        _check_image(candidates, "candidates", allow_batch=True, values=False)  # dtype, sizes
+        check_image(candidates, "candidates", allow_batch=True, values=False)  # dtype, sizes
         return candidates
 
     def evaluate(self, candidates) -> ThetaScores:
@@ -147,14 +156,14 @@ class ThetaReference:
         shared = self._fsim.dtype == np.float32
         for k in range(n):
             img = batch[k]
-            planes = self._hist._to_planar(img)  # float32 (3, H * W), shared by both terms
+            planes = self._hist.to_planar(img)  # float32 (3, H * W), shared by both terms
             if img.dtype != np.uint8:
-                _check_values(planes, f"candidates[{k}]")  # finite, in 0..255
+                check_values(planes, f"candidates[{k}]")  # finite, in 0..255
             if shared:
-                t1[k] = self._fsim._score_planar(planes.reshape(self._fsim_planar_shape))[1]
+                t1[k] = self._fsim.score_planar(planes.reshape(self._fsim_planar_shape))[1]
             else:
-                t1[k] = self._fsim._score_planar(self._fsim._to_planar(img))[1]
-            t2[k] = sum(h._score_planar(planes) for h in self._hists) / len(self._hists)
+                t1[k] = self._fsim.score_planar(self._fsim.to_planar(img))[1]
+            t2[k] = sum(h.score_planar(planes) for h in self._hists) / len(self._hists)
         return ThetaScores((t1 + t2) / 2.0, t1, t2)
 
     def score(self, candidates) -> np.ndarray:

@@ -5,8 +5,8 @@ converts messages and parameters around it.
 
 Examples
 --------
->>> from uw_sil.simcam import SimCamera
->>> from uw_sil.scene import facing_pose
+>>> from uw_sil.sim.simcam import SimCamera
+>>> from uw_sil.sim.scene import facing_pose
 >>> cam = SimCamera()                       # shipped panel, 640x480, default parameters
 >>> frame = cam.render(facing_pose(2.0))    # frame.image: (480, 640, 3) float32 in [0, 1]
 """
@@ -29,7 +29,7 @@ class SimFrame:
     """One simulated camera frame."""
 
     image: np.ndarray     # (H, W, 3) float32 in [0, 1]: the underwater image
-    render: object        # uw_sil.render.RenderResult: clean rgb, depth, range, labels
+    render: object        # uw_sil.sim.render.RenderResult: clean rgb, depth, range, labels
 
     def image_uint8(self) -> np.ndarray:
         return np.clip(np.rint(self.image * 255.0), 0, 255).astype(np.uint8)

@@ -1,4 +1,4 @@
-"""Start a node graph of :mod:`uw_sil.graph` as processes: ``ros2 launch`` for pip installs.
+"""Start a node graph of :mod:`uw_sil.nodes.graph` as processes: ``ros2 launch`` for pip installs.
 
 ``launch``/``launch_ros`` are not on PyPI, so ``uw-sil launch GRAPH`` does their job for this package's
 graphs: one process per node (``python -m uw_sil.nodes.<name> --ros-args ...``), each output line
@@ -13,7 +13,7 @@ Behaviour
   so a terminal's Ctrl-C does not reach the nodes twice); nodes get ``stop_timeout`` seconds to
   exit, then SIGTERM, and SIGKILL only as the last resort (that leaves Fast DDS shared-memory
   segments in /dev/shm, and is reported). A second Ctrl-C sends SIGTERM at once, a third SIGKILL.
-* A node marked ``required`` (:attr:`uw_sil.graph.NodeSpec.required`) ends the graph when it exits,
+* A node marked ``required`` (:attr:`uw_sil.nodes.graph.NodeSpec.required`) ends the graph when it exits,
   like ``on_exit=Shutdown()`` in a launch file: in the backward graph with a bag, ``backward_fit``
   exits once the fit is done, so ``uw-sil launch backward --bag trial.mcap`` returns by itself.
   Without a bag (live camera) or with ``--keep-running`` everything runs until Ctrl-C, as with

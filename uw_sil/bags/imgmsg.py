@@ -130,7 +130,7 @@ def depth_to_image_fields(depth: np.ndarray) -> dict:
     ----------
     depth : ndarray
         (H, W) planar depth in metres; ``+inf`` where nothing was hit (as
-        :class:`uw_sil.render.RenderResult` gives it), NaN where unknown.
+        :class:`uw_sil.sim.render.RenderResult` gives it), NaN where unknown.
 
     Returns
     -------

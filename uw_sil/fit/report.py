@@ -15,9 +15,9 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from .fileio import write_text_atomic
-from .params import RGB_NAMES, UNITS
-from .viz import _plt, save_figure
+from .._shared.fileio import write_text_atomic
+from ..sim.params import RGB_NAMES, UNITS
+from ..viz import pyplot, save_figure
 
 __all__ = ["progression_figure", "convergence_figure", "residual_figure", "write_report"]
 
@@ -31,7 +31,7 @@ def _snapshot_iterations(n_iters: int, count: int = 5) -> list[int]:
 
 def _simulator(fit, frame: int):
     """x (the fit's parameter space) -> noise-free simulated image of fit frame ``frame``."""
-    from .optics import PreparedRender
+    from ..sim.optics import PreparedRender
 
     rr = fit.frames[frame].render
     prep = PreparedRender(rr.rgb, rr.range, rr.depth, fog=fit.fog)
@@ -45,7 +45,7 @@ def _closest_frame(fit) -> int:
 
 def progression_figure(fit, frame: int = None, count: int = 5):
     """Real frame, then the simulation with the best parameters at several iterations."""
-    plt = _plt()
+    plt = pyplot()
     frame = _closest_frame(fit) if frame is None else frame
     simulate = _simulator(fit, frame)
     o = fit.optim
@@ -68,7 +68,7 @@ def progression_figure(fit, frame: int = None, count: int = 5):
 
 def convergence_figure(fits: Sequence):
     """Best θ per iteration for each run (and per evaluation count on a second axis)."""
-    plt = _plt()
+    plt = pyplot()
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 3.8))
     for fit in fits:
         o = fit.optim
@@ -96,7 +96,7 @@ def convergence_figure(fits: Sequence):
 
 def residual_figure(fit, frame: int = None):
     """real − simulation at the fitted parameters, signed, per channel and as luminance (in 0..1 units)."""
-    plt = _plt()
+    plt = pyplot()
     frame = _closest_frame(fit) if frame is None else frame
     simulate = _simulator(fit, frame)
     sim = simulate(fit.x_best)

@@ -19,7 +19,7 @@ operation by operation, including the details where re-implementations usually d
 Besides the one-shot :func:`fsim`, :class:`FSIMReference` caches everything that depends
 on a fixed reference image only (its phase congruency, gradient magnitude and chroma) and
 scores candidate images (one at a time, float32/complex64 FFTs); it is what the backward
-optimizer uses through :mod:`uw_sil.theta`.
+optimizer uses through :mod:`uw_sil.metrics.theta`.
 """
 from __future__ import annotations
 
@@ -29,6 +29,8 @@ from typing import NamedTuple
 
 import numpy as np
 import scipy.fft as sfft
+
+from .._shared.checks import check_image, check_mask, check_values
 
 __all__ = [
     "FSIMResult",
@@ -73,62 +75,6 @@ class FSIMResult(NamedTuple):
 
     fsim: float
     fsimc: float
-
-
-# ---------------------------------------------------------------------------------------------
-# Input validation
-# ---------------------------------------------------------------------------------------------
-def _check_values(arr: np.ndarray, name: str) -> None:
-    """Raise unless a float array is finite and within [0, 255] (uint8 always passes).
-
-    Two passes: NaN propagates through ``min``/``max``, so it fails the range test too.
-    """
-    if arr.dtype == np.uint8 or arr.size == 0:
-        return
-    lo, hi = arr.min(), arr.max()
-    if lo >= 0.0 and hi <= 255.0:
-        return
-    if not (np.isfinite(lo) and np.isfinite(hi)):
-        raise ValueError(f"{name} contains NaN or inf")
-    raise ValueError(
-        f"{name} must have values in [0, 255] (got {lo:g}..{hi:g}); "
-        "clip simulated images and scale 0..1 floats by 255"
-    )
-
-
-def _check_image(img, name: str, *, allow_batch: bool = False, values: bool = True) -> np.ndarray:
-    """Validate one image (or a candidate stack) and return it.
-
-    Accepted: numpy arrays of dtype uint8, or float32/float64 with finite values in [0, 255];
-    grey ``(H, W)`` or RGB ``(H, W, 3)`` (with ``allow_batch`` also ``(N, H, W, 3)``); both
-    sides at least 2. ``values=False`` skips the value scan (done later on a working copy).
-    """
-    if not isinstance(img, np.ndarray):
-        raise TypeError(f"{name} must be a numpy array, got {type(img).__name__}")
-    if img.dtype not in (np.uint8, np.float32, np.float64):
-        raise TypeError(f"{name} must be uint8, float32 or float64, got dtype {img.dtype}")
-    ndim_ok = img.ndim in (2, 3) or (allow_batch and img.ndim == 4)
-    if not ndim_ok or (img.ndim >= 3 and img.shape[-1] != 3):
-        want = "(H, W), (H, W, 3)" + (" or (N, H, W, 3)" if allow_batch else "")
-        raise ValueError(f"{name} must have shape {want}, got {img.shape}")
-    rows, cols = (img.shape[-2], img.shape[-1]) if img.ndim == 2 else img.shape[-3:-1]
-    if img.size == 0:
-        raise ValueError(f"{name} is empty (shape {img.shape})")
-    if rows < 2 or cols < 2:
-        raise ValueError(f"{name} must be at least 2x2 pixels, got {rows}x{cols}")
-    if values:
-        _check_values(img, name)
-    return img
-
-
-def _check_mask(mask, shape) -> np.ndarray:
-    """A boolean (rows, cols) mask, or a clear error."""
-    m = np.asarray(mask)
-    if m.dtype != bool:
-        raise TypeError(f"mask must be a boolean array, got dtype {m.dtype}")
-    if m.shape != tuple(shape):
-        raise ValueError(f"mask must have shape {tuple(shape)}, got {m.shape}")
-    return m
 
 
 def _mround(x: float) -> int:
@@ -529,8 +475,8 @@ def fsim(ref, dist, *, workers=None) -> FSIMResult:
        extension FSIM_C); reference code FeatureSIM.m v1.0.
     .. [2] P. Kovesi, "Image features from phase congruency", Videre 1(3), 1999.
     """
-    _check_image(ref, "ref")
-    _check_image(dist, "dist")
+    check_image(ref, "ref")
+    check_image(dist, "dist")
     if ref.shape != dist.shape:
         raise ValueError(f"ref and dist must have the same shape, got {ref.shape} and {dist.shape}")
     rows, cols = ref.shape[:2]
@@ -602,7 +548,7 @@ class FSIMReference:
     """
 
     def __init__(self, reference, *, mask=None, dtype=np.float32, workers=None):
-        _check_image(reference, "reference")
+        check_image(reference, "reference")
         if dtype not in (np.float32, np.float64):
             raise TypeError(f"dtype must be numpy.float32 or numpy.float64, got {dtype!r}")
         self.shape = reference.shape
@@ -624,7 +570,7 @@ class FSIMReference:
         if mask is None:
             self._weight = None
         else:
-            m = _check_mask(mask, (rows, cols))
+            m = check_mask(mask, (rows, cols))
             w = m[:: self.factor, :: self.factor]
             if not w.any():
                 raise ValueError("mask selects no pixel of the downsampled image")
@@ -663,26 +609,30 @@ class FSIMReference:
                 f"candidates must have shape {self.shape} or (N, {', '.join(map(str, self.shape))}), "
                 f"got {candidates.shape}"
             )
-        _check_image(batch[0], "candidates", values=False)  # dtype, sizes
+        check_image(batch[0], "candidates", values=False)  # dtype, sizes
         n = batch.shape[0]
         out_l = np.empty(n)
         out_c = np.empty(n)
         for k in range(n):
-            planes = self._to_planar(batch[k])
+            planes = self.to_planar(batch[k])
             if batch.dtype != np.uint8:
-                _check_values(planes, f"candidates[{k}]")  # on the contiguous working copy
-            out_l[k], out_c[k] = self._score_planar(planes)
+                check_values(planes, f"candidates[{k}]")  # on the contiguous working copy
+            out_l[k], out_c[k] = self.score_planar(planes)
         return out_l, out_c
 
-    def _to_planar(self, img: np.ndarray) -> np.ndarray:
-        """Planar working-precision copy of a validated candidate, in a reused buffer."""
+    def to_planar(self, img: np.ndarray) -> np.ndarray:
+        """Planar working-precision copy of a validated candidate, in a reused buffer (overwritten by the next call).
+
+        Public for criteria that share one planar copy (:class:`uw_sil.metrics.theta.ThetaReference`).
+        """
         shape = (3,) + img.shape[:2] if img.ndim == 3 else img.shape
         if self._buf is None or self._buf.shape != shape:
             self._buf = np.empty(shape, self.dtype)
         return _planar(img, self.dtype, out=self._buf)
 
-    def _score_planar(self, planes: np.ndarray) -> tuple[float, float]:
-        """(FSIM, FSIMc) of one validated candidate given as planar ``(3, H, W)`` (or grey)."""
+    def score_planar(self, planes: np.ndarray) -> tuple[float, float]:
+        """(FSIM, FSIMc) of one candidate given as planar ``(3, H, W)`` (or grey), already validated
+        (:func:`uw_sil._shared.checks.check_image`) and in the reference's working precision."""
         y, i, q = self._yiq_down(planes)
         y = np.ascontiguousarray(y, dtype=self.dtype)
         pc = _phasecong_stack(y[None], self.dtype, self.workers, 1)[0]

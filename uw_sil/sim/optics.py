@@ -15,6 +15,13 @@ UUV Simulator camera plugin. Expanding the brackets gives the form used for comp
     I_c = b_c + T_c * (i_c - b_c),   T_c = e_c(r) * f(z),
 
 one exponential per pixel and channel. Pixels where nothing was hit (``r = inf``) take ``b_c``.
+
+References
+----------
+.. [1] O. Álvarez-Tuñón, A. Jardón and C. Balaguer, "Generation and Processing of Simulated
+   Underwater Images for Infrastructure Visual Inspection with UUVs", Sensors 19(24), 5497, 2019,
+   doi:10.3390/s19245497. ("the paper" throughout uw_sil.)
+.. [2] UUV Simulator, ``uuv_gazebo_plugins`` underwater camera plugin (the same Eq. 1 per channel).
 """
 from __future__ import annotations
 
@@ -151,6 +158,6 @@ class PreparedRender:
                 np.exp(t, out=t)                        # T_c = e_c(r) f(z)
                 t *= self.mask                          # no hit: T = 0
                 t *= self.planes[c] - b
-                t += b                                  # I_c = b_c + T_c (i_c - b_c)
+                t += b                                  # I_c = b_c + T_c (i_c - b_c): paper Eq. 1 with fog
                 out[k, :, :, c] = t
         return out[0] if single else out

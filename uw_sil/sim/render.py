@@ -2,8 +2,8 @@
 
 Five lines from nothing to a rendered frame::
 
-    from uw_sil.render import Renderer
-    from uw_sil.scene import facing_pose
+    from uw_sil.sim.render import Renderer
+    from uw_sil.sim.scene import facing_pose
 
     with Renderer() as renderer:                   # shipped intervention panel, 640x480
         frame = renderer.render(facing_pose(1.5))  # .rgb, .depth, .range, .labels
@@ -38,7 +38,7 @@ Conventions
 -----------
 Poses are 4x4 ``T_cam_panel`` (model frame expressed in the camera optical frame: x right,
 y down, z forward; REP 103). The camera follows OpenCV intrinsics (pixel centres at
-integer coordinates; :class:`uw_sil.camera.CameraModel`).
+integer coordinates; :class:`uw_sil.sim.camera.CameraModel`).
 
 Pitfalls handled here
 ---------------------
@@ -140,7 +140,7 @@ class RenderResult:
         ``inf`` where nothing is hit.
     labels : (H, W) uint8
         0 water / nothing, 1 panel, 2 seafloor, other ids as named in the model
-        (:func:`uw_sil.scene.node_label`).
+        (:func:`uw_sil.sim.scene.node_label`).
     part_ids : (H, W) uint16
         0 nothing, else ``1 + index`` into :attr:`Renderer.node_names`.
     """
@@ -164,8 +164,8 @@ class Renderer:
     ----------
     model : None, str, Path, trimesh.Scene or trimesh.Trimesh, optional
         What to render, in the panel frame. None: the shipped intervention panel
-        (:func:`uw_sil.scene.load_model`); a path: any file :func:`~uw_sil.scene.load_model`
-        reads; or a trimesh object (use :func:`uw_sil.scene.add_seafloor` to add a seafloor).
+        (:func:`uw_sil.sim.scene.load_model`); a path: any file :func:`~uw_sil.sim.scene.load_model`
+        reads; or a trimesh object (use :func:`uw_sil.sim.scene.add_seafloor` to add a seafloor).
     camera : CameraModel, optional
         Intrinsics and image size; default ``CameraModel()`` (640x480, 70 deg horizontal FOV).
         Can be changed later through :attr:`camera`.
@@ -177,12 +177,12 @@ class Renderer:
         Clipping distances in metres. Depth resolution scales with ``znear`` (24-bit
         buffer: about 5 um at 2 m with the default 0.05 m).
     labels : dict, optional
-        ``{node_name: label_id}`` overriding :func:`uw_sil.scene.node_label`.
+        ``{node_name: label_id}`` overriding :func:`uw_sil.sim.scene.node_label`.
 
     Examples
     --------
-    >>> from uw_sil.render import Renderer
-    >>> from uw_sil.scene import facing_pose
+    >>> from uw_sil.sim.render import Renderer
+    >>> from uw_sil.sim.scene import facing_pose
     >>> with Renderer() as r:                               # doctest: +SKIP
     ...     frame = r.render(facing_pose(1.5, yaw=0.3))
     """

@@ -5,7 +5,7 @@ test panel: a 1.0 m x 0.7 m safety-yellow plate with a hazard-striped border, th
 valves with T-handles, two levers, a hot-stab receptacle, and printed high-contrast
 markings (title plate, dials with tick marks, numbered label plates, four ArUco markers)
 so that feature detectors find structure on it. :func:`build_panel` builds it with trimesh;
-the same model is shipped as ``uw_sil/models/intervention_panel.glb`` (installed to
+the same model is shipped as ``uw_sil/sim/models/intervention_panel.glb`` (installed to
 ``share/uw_sil/models/``), and :func:`load_model` reads it or any user mesh instead.
 
 Panel frame
@@ -445,7 +445,7 @@ def add_seafloor(scene, y: float | None = None, clearance: float = 0.5, size: fl
 
 
 def default_model_path() -> Path:
-    """Path of the shipped panel model, ``uw_sil/models/intervention_panel.glb``."""
+    """Path of the shipped panel model, ``uw_sil/sim/models/intervention_panel.glb``."""
     return Path(__file__).resolve().parent / "models" / "intervention_panel.glb"
 
 
@@ -456,7 +456,7 @@ def write_default_model(path=None) -> Path:
     ----------
     path : str or Path, optional
         Output file; default :func:`default_model_path` (the shipped model).
-        Run ``python -m uw_sil.scene`` to regenerate the shipped file.
+        Run ``python -m uw_sil.sim.scene`` to regenerate the shipped file.
 
     Returns
     -------
@@ -499,7 +499,7 @@ def load_model(path=None):
 
     path = default_model_path() if path is None else Path(path)
     if not path.is_file():
-        hint = " (regenerate it with `python -m uw_sil.scene`)" if path == default_model_path() else ""
+        hint = " (regenerate it with `python -m uw_sil.sim.scene`)" if path == default_model_path() else ""
         raise FileNotFoundError(f"model file not found: {path}{hint}")
     ext = path.suffix.lower()
     if ext not in SUPPORTED_EXTENSIONS:

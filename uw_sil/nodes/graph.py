@@ -33,8 +33,8 @@ class NodeSpec:
 
 def share_file(*parts: str) -> Path:
     """A file of this package's share directory (config/, launch/), installed or in the source tree."""
-    here = Path(__file__).resolve().parent
-    candidates = [here.parent.joinpath(*parts), Path(sys.prefix, "share", "uw_sil", *parts)]
+    source_tree = Path(__file__).resolve().parents[2]          # uw_sil/nodes/graph.py -> repository
+    candidates = [source_tree.joinpath(*parts), Path(sys.prefix, "share", "uw_sil", *parts)]
     try:
         from ament_index_python.packages import get_package_share_directory
 

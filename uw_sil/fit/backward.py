@@ -2,10 +2,18 @@
 
 At dive start the first K frames in which the panel is visible are taken from the recording. Each is
 rendered ONCE at its recorded pose (clean image, range, depth, mask); a candidate parameter vector then
-costs only the underwater model (:class:`uw_sil.optics.PreparedRender`) and θ against the real frame
-(:class:`uw_sil.theta.ThetaReference`), batched over a whole swarm / population. The objective is the
-mean θ over the K frames, maximized by :func:`uw_sil.optimize.optimize` (PSO as in the paper, or
+costs only the underwater model (:class:`uw_sil.sim.optics.PreparedRender`) and θ against the real frame
+(:class:`uw_sil.metrics.theta.ThetaReference`), batched over a whole swarm / population. The objective is the
+mean θ over the K frames, maximized by :func:`uw_sil.fit.optimize.optimize` (PSO as in the paper, or
 CMA-ES).
+
+References
+----------
+.. [1] O. Álvarez-Tuñón, A. Jardón and C. Balaguer, "Generation and Processing of Simulated
+   Underwater Images for Infrastructure Visual Inspection with UUVs", Sensors 19(24), 5497, 2019,
+   doi:10.3390/s19245497. ("the paper" throughout uw_sil.)
+.. [2] J. Kennedy and R. Eberhart, "Particle swarm optimization", Proc. ICNN 1995 (the paper's optimizer).
+.. [3] N. Hansen, "The CMA Evolution Strategy: A Tutorial", arXiv:1604.00772, 2016 (the faster alternative).
 """
 from __future__ import annotations
 
@@ -18,8 +26,8 @@ from typing import Callable, Iterable, Optional
 
 import numpy as np
 
-from .fileio import write_text_atomic
-from .params import ParamSpace, UnderwaterParams
+from .._shared.fileio import write_text_atomic
+from ..sim.params import ParamSpace, UnderwaterParams
 
 __all__ = ["FitFrame", "FrameSelection", "FrameSelector", "select_frames", "BackwardObjective", "FitResult", "fit_frames",
            "fit_bag", "write_params_yaml", "write_json_atomic", "DEFAULT_NODE_NAME"]
@@ -34,7 +42,7 @@ class FitFrame:
     index: int              # position in the recording
     stamp_ns: int
     image: np.ndarray       # (H, W, 3) uint8 RGB, the real frame
-    render: object          # uw_sil.render.RenderResult
+    render: object          # uw_sil.sim.render.RenderResult
     coverage: float         # fraction of pixels on the panel
 
     @property
@@ -60,7 +68,7 @@ class FrameSelector:
 
     Parameters
     ----------
-    renderer : :class:`uw_sil.render.Renderer`
+    renderer : :class:`uw_sil.sim.render.Renderer`
         Its camera is set from each sample's camera info.
     k : int
         Frames wanted.
@@ -173,9 +181,9 @@ class BackwardObjective:
     sim_noise : {'estimate', 'none'} or float
         Camera noise added to the candidates (a fixed realization per frame, so the objective stays
         deterministic): ``'estimate'`` (default) measures it per channel on the real frame's water
-        pixels (:func:`uw_sil.noise.estimate_noise_sigma`); a number gives sigma in grey levels.
+        pixels (:func:`uw_sil.sim.noise.estimate_noise_sigma`); a number gives sigma in grey levels.
         Without it FSIMc compares sensor noise with a noise-free render and prefers wrong
-        parameters (see :mod:`uw_sil.noise`).
+        parameters (see :mod:`uw_sil.sim.noise`).
     workers : int, optional
         Threads evaluating parts of a batch (default: up to 2, the cores here). Results do not depend
         on it.
@@ -184,9 +192,9 @@ class BackwardObjective:
     def __init__(self, frames: list, space: ParamSpace, channels: str = "HSV", fog: str = "exp2",
                  batch: int = 20, hist_pixels: str = "split", sim_noise="estimate", seed: int = 0,
                  workers: Optional[int] = None):
-        from .noise import NoiseField
-        from .optics import PreparedRender
-        from .theta import ThetaReference
+        from ..sim.noise import NoiseField
+        from ..sim.optics import PreparedRender
+        from ..metrics.theta import ThetaReference
 
         if not frames:
             raise ValueError("no frames to fit")
@@ -213,7 +221,7 @@ class BackwardObjective:
 
     @staticmethod
     def _noise_sigma(frame: FitFrame, sim_noise) -> np.ndarray:
-        from .noise import estimate_noise_sigma
+        from ..sim.noise import estimate_noise_sigma
 
         if isinstance(sim_noise, str):
             if sim_noise == "none":
@@ -280,7 +288,7 @@ class FitResult:
     theta_best: float
     theta_start: float
     space: ParamSpace
-    optim: object                      # uw_sil.optimize.OptimResult
+    optim: object                      # uw_sil.fit.optimize.OptimResult
     frames: list
     skipped: list
     channels: str
@@ -454,8 +462,8 @@ def water_start(frames: list, space: ParamSpace) -> np.ndarray:
 def fit_bag(bag, k: int = 3, stride: int = 1, min_coverage: float = 0.02, max_scan: int = 200, model=None,
             **fit_options) -> FitResult:
     """Read a recording, select frames, render them and fit (see :func:`select_frames`, :func:`fit_frames`)."""
-    from .bag import read_samples
-    from .render import Renderer
+    from ..bags import read_samples
+    from ..sim.render import Renderer
 
     with Renderer(model) as renderer:
         sel = select_frames(read_samples(bag), renderer, k=k, min_coverage=min_coverage, max_scan=max_scan,

@@ -540,7 +540,7 @@ def _run_pso(rec: _Recorder, seed, s, omega, phi_p, phi_g, max_iter, opts, u0):
 
     if pyswarm.__version__ != _PYSWARM_VERSION:
         raise RuntimeError(
-            f"uw_sil.optimize drives the core of pyswarm {_PYSWARM_VERSION}, found "
+            f"uw_sil.fit.optimize drives the core of pyswarm {_PYSWARM_VERSION}, found "
             f"pyswarm {pyswarm.__version__}"
         )
     d = rec.d

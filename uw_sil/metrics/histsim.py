@@ -24,12 +24,20 @@ Colour conventions (float computation, no 8-bit quantisation of H/S/V):
   between the first and the last bin.
 * Regions: pixel row ``i`` lies in region row ``floor(i * regions / H)`` (columns alike), so
   regions differ in size by at most one row/column when ``H`` is not a multiple.
+
+References
+----------
+.. [1] O. Álvarez-Tuñón, A. Jardón and C. Balaguer, "Generation and Processing of Simulated
+   Underwater Images for Infrastructure Visual Inspection with UUVs", Sensors 19(24), 5497, 2019,
+   doi:10.3390/s19245497. ("the paper" throughout uw_sil.)
+.. [2] A. Bhattacharyya, "On a measure of divergence between two statistical populations defined by
+   their probability distributions", Bull. Calcutta Math. Soc. 35, 99-109, 1943 (d_B).
 """
 from __future__ import annotations
 
 import numpy as np
 
-from .fsim import _check_image, _check_mask
+from .._shared.checks import check_image, check_mask
 
 __all__ = [
     "DEFAULT_BINS",
@@ -206,7 +214,7 @@ class HistogramReference:
     """
 
     def __init__(self, reference, *, channels: str = "HSV", regions: int = 10, bins=None, mask=None):
-        _check_image(reference, "reference")
+        check_image(reference, "reference")
         if reference.ndim != 3:
             raise ValueError(f"reference must be an RGB image (H, W, 3), got shape {reference.shape}")
         self.channels = _parse_channels(channels)
@@ -225,7 +233,7 @@ class HistogramReference:
             self._sel = None
             self._region = region.ravel()
         else:
-            m = _check_mask(mask, (rows, cols))
+            m = check_mask(mask, (rows, cols))
             if not m.any():
                 raise ValueError("mask selects no pixel")
             self._sel = np.flatnonzero(m)
@@ -257,8 +265,9 @@ class HistogramReference:
             self._ws[key] = ws
         return ws
 
-    def _to_planar(self, img: np.ndarray) -> np.ndarray:
-        """Planar float32 copy ``(3, H * W)`` of a validated RGB image, in a reused buffer."""
+    def to_planar(self, img: np.ndarray) -> np.ndarray:
+        """Planar float32 copy ``(3, H * W)`` of a validated RGB image, in a reused buffer (overwritten by
+        the next call; public for criteria sharing one copy, as :class:`uw_sil.metrics.theta.ThetaReference`)."""
         rows, cols = img.shape[:2]
         ws = self._work(rows * cols)
         np.copyto(ws["planes"].reshape(3, rows, cols), np.moveaxis(img, -1, 0), casting="unsafe")
@@ -266,7 +275,7 @@ class HistogramReference:
 
     def _histograms(self, img: np.ndarray) -> dict:
         """Per channel histogram counts, shape (regions**2, bins), of one RGB image."""
-        return self._histograms_planar(self._to_planar(img))
+        return self._histograms_planar(self.to_planar(img))
 
     def _histograms_planar(self, planes: np.ndarray) -> dict:
         """Histograms from planar float32 RGB ``(3, H * W)`` (all pixels, the mask is applied here).
@@ -333,9 +342,9 @@ class HistogramReference:
         return acc
 
     def _score_one(self, candidate: np.ndarray) -> float:
-        return self._score_planar(self._to_planar(candidate))
+        return self.score_planar(self.to_planar(candidate))
 
-    def _score_planar(self, planes: np.ndarray) -> float:
+    def score_planar(self, planes: np.ndarray) -> float:
         """theta_2 of one validated candidate given as planar float32 ``(3, H * W)``."""
         d = self._distances(self._histograms_planar(planes))[self._valid]
         return 1.0 - float(np.median(d))
@@ -353,7 +362,7 @@ class HistogramReference:
         ndarray, shape (N,)
             ``1 - median_r mean_c d_B``, in [0, 1].
         """
-        _check_image(candidates, "candidates", allow_batch=True)
+        check_image(candidates, "candidates", allow_batch=True)
         if candidates.ndim == 2:
             raise ValueError(f"candidates must be RGB, got shape {candidates.shape}")
         batch = candidates[None] if candidates.ndim == 3 else candidates
@@ -397,8 +406,8 @@ def hsv_histogram_similarity(ref, cand, channels: str = "HSV", regions: int = 10
     ----------
     .. [1] The project paper, Sec. 3.3, Eq. (3)-(4) and Algorithm 1.
     """
-    _check_image(ref, "ref")
-    _check_image(cand, "cand")
+    check_image(ref, "ref")
+    check_image(cand, "cand")
     if ref.shape != cand.shape:
         raise ValueError(f"ref and cand must have the same shape, got {ref.shape} and {cand.shape}")
     ref_hist = HistogramReference(ref, channels=channels, regions=regions, bins=bins, mask=mask)

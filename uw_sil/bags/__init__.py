@@ -1,0 +1,22 @@
+"""ROS 2 bags of field trials: reading (:mod:`.reader`, with cut-off MCAP recovery in
+:mod:`.mcap_recover`), writing (:mod:`.writer`), stamp pairing (:mod:`.stamps`), image message
+conversion (:mod:`.imgmsg`) and synthetic trials (:mod:`.synth`).
+
+Import rules: may import :mod:`uw_sil.sim` (cameras, poses; the renderer for synthetic trials) and
+:mod:`uw_sil._shared`; no metrics, fit or ROS nodes (messages are decoded with ``rosbags``, not rclpy).
+"""
+from importlib import import_module
+
+_EXPORTS = {
+    "BagError": "records", "BagInfo": "reader", "RawMessage": "reader", "ReadReport": "reader", "Sample": "records",
+    "StampSynchronizer": "stamps", "TopicInfo": "reader", "iter_messages": "reader", "iter_raw": "reader",
+    "open_bag": "reader", "read_samples": "reader", "resolve_bag_path": "reader", "synthesize_trial": "synth",
+    "write_trial": "writer",
+}
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name):
+    if name in _EXPORTS:
+        return getattr(import_module(f".{_EXPORTS[name]}", __name__), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -1,0 +1,51 @@
+"""What readers and writers of trial bags share: message type names, the one-frame record
+(:class:`Sample`) and the error they raise (:class:`BagError`)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..sim.camera import CameraModel
+
+__all__ = ["Sample", "BagError", "IMAGE_TYPE", "COMPRESSED_IMAGE_TYPE", "CAMERA_INFO_TYPE", "POSE_TYPE", "TF_TYPE",
+           "STORAGE_SUFFIX", "ROSBAG2_VERSION"]
+
+IMAGE_TYPE = "sensor_msgs/msg/Image"
+COMPRESSED_IMAGE_TYPE = "sensor_msgs/msg/CompressedImage"
+CAMERA_INFO_TYPE = "sensor_msgs/msg/CameraInfo"
+POSE_TYPE = "geometry_msgs/msg/PoseStamped"
+TF_TYPE = "tf2_msgs/msg/TFMessage"
+
+STORAGE_SUFFIX = {"mcap": ".mcap", "sqlite3": ".db3"}
+ROSBAG2_VERSION = 9  # metadata.yaml version of Jazzy / Kilted
+
+
+class BagError(ValueError):
+    """A bag cannot be read or written as asked (not a bag, missing topic, bad message...)."""
+
+
+@dataclass
+class Sample:
+    """One time-synchronized camera frame of a trial.
+
+    Attributes
+    ----------
+    stamp_ns : int
+        Header stamp of the image, nanoseconds.
+    image : ndarray
+        (H, W, 3) uint8, RGB.
+    camera : CameraModel
+        Intrinsics from the paired ``camera_info``.
+    pose : ndarray
+        4x4 float64 ``T_cam_panel``: the panel frame expressed in the camera optical frame.
+    frame_id : str
+        The camera optical frame (image ``header.frame_id``).
+    """
+
+    stamp_ns: int
+    image: np.ndarray
+    camera: CameraModel
+    pose: np.ndarray
+    frame_id: str = "camera_optical_frame"
+

@@ -1,0 +1,21 @@
+"""The simulated camera: pinhole camera and poses, the panel scene, the headless renderer, the
+underwater image model with its parameters, camera noise, and :class:`SimCamera` that puts them together.
+
+Import rules: imports nothing of uw_sil but :mod:`uw_sil._shared` (no metrics, fit, bags, ROS).
+Heavy modules (pyrender, trimesh) load only when their names are first used.
+"""
+from importlib import import_module
+
+_EXPORTS = {
+    "CameraModel": "camera", "FOG_MODES": "optics", "NoiseField": "noise", "ParamSpace": "params",
+    "PreparedRender": "optics", "RenderResult": "render", "Renderer": "render", "SimCamera": "simcam",
+    "SimFrame": "simcam", "UnderwaterParams": "params", "degrade": "optics", "estimate_noise_sigma": "noise",
+    "facing_pose": "scene", "look_at": "transforms", "matrix_to_pose": "transforms", "pose_to_matrix": "transforms",
+}
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name):
+    if name in _EXPORTS:
+        return getattr(import_module(f".{_EXPORTS[name]}", __name__), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
