@@ -6,17 +6,10 @@ import pytest
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 
-try:
-    from uw_sil.sim.camera import CameraModel
-    from uw_sil.sim.params import UnderwaterParams
-    from uw_sil.sim.render import Renderer
-    from uw_sil.sim.scene import facing_pose
-except ImportError:  # before the package layout move
-    from uw_sil.camera import CameraModel
-    from uw_sil.params import UnderwaterParams
-    from uw_sil.render import Renderer
-    from uw_sil.scene import facing_pose
-
+from uw_sil.sim.camera import CameraModel
+from uw_sil.sim.params import UnderwaterParams
+from uw_sil.sim.render import Renderer
+from uw_sil.sim.scene import facing_pose
 from uw_sil.sim.effects import DEFAULT_SEVERITY, EFFECT_ORDER, EFFECTS, STAGES, get_effect, parse_effects
 from uw_sil.sim.model import UnderwaterModel, effect_params_to_flat, flat_to_effect_params
 

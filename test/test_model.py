@@ -6,19 +6,11 @@ import pytest
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 
-try:
-    from uw_sil.sim import optics
-    from uw_sil.sim.camera import CameraModel
-    from uw_sil.sim.params import UnderwaterParams
-    from uw_sil.sim.render import Renderer
-    from uw_sil.sim.scene import facing_pose
-except ImportError:  # before the package layout move
-    from uw_sil import optics
-    from uw_sil.camera import CameraModel
-    from uw_sil.params import UnderwaterParams
-    from uw_sil.render import Renderer
-    from uw_sil.scene import facing_pose
-
+from uw_sil.sim import optics
+from uw_sil.sim.camera import CameraModel
+from uw_sil.sim.params import UnderwaterParams
+from uw_sil.sim.render import Renderer
+from uw_sil.sim.scene import facing_pose
 from uw_sil.sim.model import Geometry, UnderwaterModel
 
 P = UnderwaterParams(a=(0.3, 0.1, 0.08), b=(0.06, 0.3, 0.4), rho_f=0.05)

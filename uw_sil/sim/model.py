@@ -43,15 +43,8 @@ import numpy as np
 
 from .effects import EFFECTS, EFFECT_ORDER, get_effect, parse_effects
 from .effects.base import ModelTerms, effect_rng
-
-# Phase-1 compatibility: before the package layout move these modules live in uw_sil/, afterwards in
-# uw_sil/sim/. (Replaced by plain relative imports after the move.)
-try:  # pragma: no cover - depends on the layout
-    from .optics import FOG_MODES
-    from .params import RGB_NAMES, UnderwaterParams, validate_rgb_params
-except ImportError:  # pragma: no cover
-    from ..optics import FOG_MODES
-    from ..params import RGB_NAMES, UnderwaterParams, validate_rgb_params
+from .optics import FOG_MODES
+from .params import UnderwaterParams, validate_rgb_params
 
 __all__ = ["Geometry", "ModelTerms", "UnderwaterModel", "PreparedModel", "RestoreResult",
            "effect_params_to_flat", "flat_to_effect_params", "normalize_effects"]

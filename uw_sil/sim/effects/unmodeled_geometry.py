@@ -29,10 +29,7 @@ _mips: list = []
 
 def _texture_mips() -> list:
     if not _mips:
-        try:                                   # layout after the package move / before it
-            from ..scene import seafloor_texture
-        except ImportError:                    # pragma: no cover
-            from ...scene import seafloor_texture
+        from ..scene import seafloor_texture
         tex = seafloor_texture(size=TEX_SIZE, seed=0).astype(np.float32) / 255.0
         level = tex
         while True:
