@@ -137,3 +137,23 @@ def test_geometry_from_render(frame, renderer):
     plate = np.median(n, axis=0)
     np.testing.assert_allclose(plate, T[:3, 2], atol=0.02)
     assert (g.normals[~hit] == 0).all()
+
+
+def test_simcam_with_effects(frame):
+    from uw_sil.sim.simcam import SimCamera
+
+    T, rr = frame
+    cam = CameraModel.from_fov(160, 120)
+    with SimCamera(P, camera=cam, effects="vignetting=strong") as sim:
+        img = sim.render(T).image
+        ref = UnderwaterModel(P, {"vignetting": "strong"}).degrade(sim.renderer.render(T), cam)
+        np.testing.assert_array_equal(img, ref)
+        sim.set_effect_params({"vignetting.k1": -0.1})                    # live
+        assert sim.effects["vignetting"]["k1"] == -0.1
+        with pytest.raises(ValueError, match="not active"):
+            sim.set_effect_params({"marine_snow.density": 10})
+        with pytest.raises(ValueError, match="vignetting.k1"):
+            sim.set_effect_params({"vignetting.k1": 9.0})
+        assert sim.effects["vignetting"]["k1"] == -0.1                     # unchanged after a refused update
+        sim.effects = None
+        np.testing.assert_array_equal(sim.render(T).image, optics.degrade(rr.rgb, rr.range, rr.depth, P.as_vector()))
