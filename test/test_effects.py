@@ -268,3 +268,37 @@ def test_mild_subtle_strong_stronger(name, frames, renderer):
     mild = np.abs(degrade({name: "mild"}, frames["mid"], cam, seed=4) - base).mean()
     strong = np.abs(degrade({name: "strong"}, frames["mid"], cam, seed=4) - base).mean()
     assert 0 < mild < strong
+
+
+# ---------------------------------------------------------------------------- synthetic trials
+
+
+def test_synth_injects_effects_recorded_only_in_truth(tmp_path, capsys):
+    import json
+
+    from uw_sil.bags.reader import read_samples
+    from uw_sil.cli import build_parser, main
+
+    help_text = " ".join(a.help or "" for a in build_parser()._subparsers._group_actions[0].choices["synth"]._actions)
+    assert all(name in help_text for name in NAMES)
+    common = ["--frames", "2", "--width", "160", "--height", "120", "--seed", "3"]
+    assert main(["synth", "--out", str(tmp_path / "a.mcap"), *common]) == 0
+    assert main(["synth", "--out", str(tmp_path / "b.mcap"), *common,
+                 "--effects", "vignetting=strong,marine_snow=mild,marine_snow.density=200"]) == 0
+    truth = json.loads((tmp_path / "b.truth.json").read_text())
+    assert truth["effects"] == ["marine_snow", "vignetting"]
+    assert truth["effect_params"]["vignetting"] == EFFECTS["vignetting"].severity("strong")
+    assert truth["effect_params"]["marine_snow"]["density"] == 200
+    assert json.loads((tmp_path / "a.truth.json").read_text())["effects"] == []
+    a = list(read_samples(tmp_path / "a.mcap"))
+    b = list(read_samples(tmp_path / "b.mcap"))
+    assert len(a) == len(b) == 2
+    np.testing.assert_array_equal(a[0].pose, b[0].pose)
+    ia, ib = a[0].image.astype(float), b[0].image.astype(float)
+    assert ib[0, 0].sum() < ia[0, 0].sum() - 20                          # vignetted corner
+    meta = (tmp_path / "b" / "metadata.yaml").read_text()
+    assert "vignetting" not in meta and "marine_snow" not in meta        # nothing of it in the bag
+    capsys.readouterr()
+    assert main(["synth", "--out", str(tmp_path / "c.mcap"), *common, "--effects", "vignetting,fog_of_war"]) == 1
+    assert "fog_of_war" in capsys.readouterr().err
+    assert not (tmp_path / "c").exists()
