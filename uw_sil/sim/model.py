@@ -257,11 +257,20 @@ def flat_to_effect_params(flat: dict) -> dict:
 # ============================================================================ the model
 
 
-class RestoreResult(NamedTuple):
+class _RestoreFields(NamedTuple):
     image: np.ndarray            # (H, W, 3) float32 in [0, 1]
     restored_mask: np.ndarray    # (H, W) bool: object pixels that were restored
     restored_fraction: float
-    skipped: tuple = ()          # active effects that restore could not undo
+
+
+class RestoreResult(_RestoreFields):
+    """``(image, restored_mask, restored_fraction)``, plus the attribute ``skipped`` (not unpacked): the
+    active effects restore could not undo."""
+
+    def __new__(cls, image, restored_mask, restored_fraction, skipped=()):
+        self = super().__new__(cls, image, restored_mask, restored_fraction)
+        self.skipped = tuple(skipped)
+        return self
 
 
 class UnderwaterModel:
