@@ -526,47 +526,55 @@ def write_json_atomic(path, data) -> Path:
 
 
 def write_params_yaml(path, params: UnderwaterParams, node_name: str = DEFAULT_NODE_NAME, fog: str = "exp2",
-                      comment: str = "", noise_sigma: Optional[float] = None) -> Path:
+                      comment: str = "", noise_sigma: Optional[float] = None, effects: Optional[dict] = None) -> Path:
     """ROS 2 parameters file for the sim camera node (``--ros-args --params-file``), written atomically.
 
-    ``noise_sigma`` (grey levels), when given, is the camera noise the fit estimated on the real frames."""
+    ``noise_sigma`` (grey levels), when given, is the camera noise the fit estimated on the real frames.
+    ``effects`` (``{name: {param: value}}``, see :mod:`uw_sil.sim.effects`) adds the read-only ``effects``
+    list and one flat parameter ``<effect>.<param>`` per effect parameter."""
     import yaml
+
+    from ..sim.model import effect_params_to_flat, normalize_effects
 
     ros_params = {**params.as_dict(), "fog_mode": fog}
     if noise_sigma is not None:
         ros_params["noise_sigma"] = float(noise_sigma)
+    if effects:
+        effects = normalize_effects(effects)
+        ros_params["effects"] = ",".join(effects)
+        ros_params.update(effect_params_to_flat(effects))
     body = {node_name: {"ros__parameters": ros_params}}
     text = "".join(f"# {line}\n" for line in comment.splitlines()) + yaml.safe_dump(body, sort_keys=False)
     return write_text_atomic(path, text)
 
 
 def read_params_yaml(path, node_name: Optional[str] = None) -> dict:
-    """Read a ROS 2 parameters file of the sim camera, as :func:`write_params_yaml` writes it.
+    """Read a parameters file of :func:`write_params_yaml` (or any sim_camera parameters file).
 
-    Parameters
-    ----------
-    path : str or Path
-        ``<node>: {ros__parameters: {a_r: ..., ..., rho_f: ..., fog_mode: ..., noise_sigma: ...}}``.
-    node_name : str, optional
-        The node key to read (default: the only node in the file).
+    Takes the node entry ``node_name`` (default: the only one, or ``/**``). Effect parameters may be flat
+    (``vignetting.k1: -0.3``) or nested (``vignetting: {k1: -0.3}``) as ROS 2 accepts both; effects are
+    those in the ``effects`` list plus any with parameters in the file (parameters missing from the file
+    take the listed preset or the defaults, as ``sim_camera`` does).
 
     Returns
     -------
     dict
-        ``params`` (:class:`UnderwaterParams`), ``fog_mode`` (str or None), ``noise_sigma`` (float or
-        None) and ``node`` (the key read).
+        ``params`` (UnderwaterParams), ``fog`` (str), ``noise_sigma`` (float or None), ``effects``
+        (``{name: {param: value}}``, composition order), ``node`` (the node entry read).
 
     Raises
     ------
     FileNotFoundError
         ``path`` does not exist.
     ValueError
-        A message starting with ``path``: not YAML (with line and column), not a parameters file,
-        several nodes and none named, a missing parameter, a value that is not a number, out of
-        its physical range, or an unknown fog mode.
+        With a message starting with ``path``: not YAML (with line and column), not a ROS 2
+        parameters file, no entry for the node, a missing parameter, a value that is not a number or
+        outside its physical range, an unknown fog mode or effect, a negative noise level.
     """
     import yaml
 
+    from ..sim.effects import EFFECTS, get_effect
+    from ..sim.model import normalize_effects
     from ..sim.optics import FOG_MODES
 
     p = Path(path)
@@ -577,35 +585,50 @@ def read_params_yaml(path, node_name: Optional[str] = None) -> dict:
     except (OSError, UnicodeDecodeError) as exc:
         raise ValueError(f"{p}: cannot read: {exc}") from None
     try:
-        doc = yaml.safe_load(text)
+        doc = yaml.safe_load(text) or {}
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark is not None else ""
         problem = getattr(exc, "problem", None) or " ".join(str(exc).split())
         raise ValueError(f"{p}: not a valid YAML file: {problem}{where}") from None
-    nodes = {}
-    if isinstance(doc, dict):
-        nodes = {str(k): v["ros__parameters"] for k, v in doc.items()
-                 if isinstance(v, dict) and isinstance(v.get("ros__parameters"), dict)}
-    if not nodes:
+    if not isinstance(doc, dict) or not any(isinstance(v, dict) and isinstance(v.get("ros__parameters"), dict)
+                                            for v in doc.values()):
         raise ValueError(f"{p}: not a ROS 2 parameters file: expected <node>: {{ros__parameters: {{...}}}}")
     if node_name is None:
-        if len(nodes) > 1:
-            raise ValueError(f"{p}: holds parameters of several nodes ({', '.join(nodes)}): name one")
-        node_name = next(iter(nodes))
-    elif node_name not in nodes:
-        raise ValueError(f"{p}: no parameters for node {node_name!r}; it has: {', '.join(nodes)}")
-    values = nodes[node_name]
+        node_name = next(iter(doc)) if len(doc) == 1 else DEFAULT_NODE_NAME
+    if node_name not in doc or not isinstance(doc[node_name], dict) or "ros__parameters" not in doc[node_name]:
+        raise ValueError(f"{p}: no 'ros__parameters' for node {node_name!r} (nodes: {', '.join(map(str, doc))})")
+    flat = {}
+
+    def walk(prefix, d):
+        for k, v in d.items():
+            key = f"{prefix}.{k}" if prefix else str(k)
+            if isinstance(v, dict):
+                walk(key, v)
+            else:
+                flat[key] = v
+
+    walk("", doc[node_name]["ros__parameters"])
     try:
-        params = UnderwaterParams.from_dict(values)
+        params = UnderwaterParams.from_dict(flat)
+        fog = str(flat.get("fog_mode", "exp2"))
+        if fog not in FOG_MODES:
+            raise ValueError(f"fog_mode must be one of {', '.join(FOG_MODES)}, got {fog!r}")
+        noise = flat.get("noise_sigma")
+        if noise is not None and (isinstance(noise, bool) or not isinstance(noise, (int, float))
+                                  or not np.isfinite(noise) or noise < 0):
+            raise ValueError(f"noise_sigma must be a number >= 0 (grey levels), got {noise!r}")
+        effects = {}                # as sim_camera reads its ``effects`` list: NAME (defaults) or NAME=mild|strong
+        for item in (s.strip() for s in str(flat.get("effects", "")).split(",")):
+            if item:
+                name, _, level = (t.strip() for t in item.partition("="))
+                effects[name] = get_effect(name).severity(level) if level else get_effect(name).defaults()
+        for key, v in flat.items():                     # then the values in the file
+            name, dot, param = key.partition(".")
+            if dot and name in EFFECTS:
+                effects.setdefault(name, EFFECTS[name].defaults())[param] = v
+        effects = normalize_effects(effects)
     except ValueError as exc:
         raise ValueError(f"{p}: {exc}") from None
-    fog = values.get("fog_mode")
-    if fog is not None and fog not in FOG_MODES:
-        raise ValueError(f"{p}: fog_mode must be one of {', '.join(FOG_MODES)}, got {fog!r}")
-    noise = values.get("noise_sigma")
-    if noise is not None:
-        if isinstance(noise, bool) or not isinstance(noise, (int, float)) or not np.isfinite(noise) or noise < 0:
-            raise ValueError(f"{p}: noise_sigma must be a number >= 0 (grey levels), got {noise!r}")
-        noise = float(noise)
-    return {"params": params, "fog_mode": fog, "noise_sigma": noise, "node": node_name}
+    return {"params": params, "fog": fog, "noise_sigma": None if noise is None else float(noise),
+            "effects": effects, "node": node_name}
