@@ -544,7 +544,10 @@ def write_params_yaml(path, params: UnderwaterParams, node_name: str = DEFAULT_N
         ros_params["effects"] = ",".join(effects)
         ros_params.update(effect_params_to_flat(effects))
     body = {node_name: {"ros__parameters": ros_params}}
-    text = "".join(f"# {line}\n" for line in comment.splitlines()) + yaml.safe_dump(body, sort_keys=False)
+    # comment lines hold the bag's path: characters YAML does not allow (control characters) are escaped
+    lines = ("".join(c if c.isprintable() else c.encode("unicode_escape").decode() for c in line)
+             for line in comment.splitlines())
+    text = "".join(f"# {line}\n" for line in lines) + yaml.safe_dump(body, sort_keys=False)
     return write_text_atomic(path, text)
 
 
