@@ -132,14 +132,20 @@ def test_a_bug_still_shows_a_traceback(tmp_path, monkeypatch):
     assert not (tmp_path / "fit.yaml").exists()
 
 
-def test_corpus_script_writes_every_case(tmp_path):
-    """``make_corpus.py`` run as a script generates one folder per case with its command line."""
-    p = subprocess.run([sys.executable, corpus.__file__, str(tmp_path)], env=ENV, capture_output=True, text=True,
-                       timeout=300)
+def test_corpus_script_writes_the_cases_asked_for(tmp_path):
+    """``make_corpus.py OUT CASE...`` run as a script generates one folder per case with its command line
+    (every case's generation is exercised by test_cli_case; here a few, through the script)."""
+    names = ["zero_length", "enc_bgr8", "params_yaml_malformed"]
+    p = subprocess.run([sys.executable, corpus.__file__, str(tmp_path), *names], env=ENV, capture_output=True,
+                       text=True, timeout=300)
     assert p.returncode == 0, p.stderr
-    assert p.stdout.strip().splitlines()[-1] == f"{len(CASES)} cases in {tmp_path}"
-    for case in CASES:
-        assert (tmp_path / case.name / "command.txt").read_text().startswith("uw-sil ")
+    assert p.stdout.strip().splitlines()[-1] == f"3 cases in {tmp_path}"
+    assert sorted(d.name for d in tmp_path.iterdir()) == sorted(names)
+    for name in names:
+        assert (tmp_path / name / "command.txt").read_text().startswith("uw-sil ")
+    p = subprocess.run([sys.executable, corpus.__file__, str(tmp_path), "no_such_case"], env=ENV,
+                       capture_output=True, text=True, timeout=300)
+    assert p.returncode == 2 and "unknown case(s): no_such_case" in p.stderr
 
 
 @pytest.mark.parametrize("name, stamps", [
