@@ -10,9 +10,10 @@ water absorbs red so strongly that the red channel is dark everywhere underwater
 
 Choices where the papers leave room (all documented in :func:`dehaze_dcp`):
 
-- atmospheric light: among the brightest 0.1 % of the dark channel, the pixel(s) of highest input
-  intensity, intensity = mean over the channels used (R, G, B for DCP; G, B for UDCP); when
-  several candidates share that highest intensity their colours are averaged;
+- atmospheric light: among the brightest 0.1 % of the dark channel (ties at the cut taken in
+  raster order), the pixel(s) of highest input intensity, intensity = mean over the channels used
+  (R, G, B for DCP; G, B for UDCP); when several candidates share that highest intensity their
+  colours are averaged;
 - transmission refinement: the guided filter (He, Sun & Tang, "Guided Image Filtering", TPAMI 2013,
   which recommends it for dehazing in place of the 2011 paper's soft matting), guide = grey input;
 - UDCP uses the same ω (0.95) and t0 (0.1) as DCP.
@@ -84,10 +85,15 @@ def _dark_channel(img: np.ndarray, channels, patch: int) -> np.ndarray:
 
 def _atmospheric_light(img: np.ndarray, dark: np.ndarray, channels) -> np.ndarray:
     """He et al. Sec. 4.4: among the top 0.1 % brightest dark-channel pixels, the one(s) of highest
-    input intensity (mean over ``channels``); ties are averaged. Deterministic (no random tie-breaks)."""
+    input intensity (mean over ``channels``); ties in intensity are averaged. Exactly n = 0.1 % of the
+    pixels are candidates; pixels tied with the n-th brightest dark-channel value are taken in raster
+    order (a deterministic rule, and in practice ties at that value share the colour of the veil)."""
     flat_dark = dark.ravel()
     n = max(1, int(round(_TOP_FRACTION * flat_dark.size)))
-    candidates = np.argpartition(flat_dark, flat_dark.size - n)[flat_dark.size - n:]
+    kth = np.sort(flat_dark)[flat_dark.size - n]   # a full sort: faster than a partition with many ties
+    above = np.flatnonzero(flat_dark > kth)
+    tied = np.flatnonzero(flat_dark == kth)[:n - above.size]
+    candidates = np.concatenate([above, tied])
     pixels = img.reshape(-1, 3)[candidates].astype(np.float64)
     intensity = pixels[:, list(channels)].mean(axis=1)
     best = intensity == intensity.max()
@@ -118,10 +124,11 @@ def dehaze_dcp(image, *, variant: str = "dcp", patch: int = 15, omega: float = 0
 
     1. dark channel ``I_dark(x) = min_{y∈Ω(x)} min_{c∈C} I^c(y)`` (He et al. Eq. 5; Drews et al.'s
        underwater dark channel for C = {G, B});
-    2. atmospheric light ``A``: the top 0.1 % brightest pixels of ``I_dark`` are candidates; ``A`` is
-       the input colour of the candidate with the highest intensity, intensity = mean of ``I^c`` over
-       ``C`` (He et al. Sec. 4.4). Candidates tied at that intensity are averaged. ``A`` has all three
-       channels also for UDCP, whose restoration is applied to R, G and B;
+    2. atmospheric light ``A``: the top 0.1 % brightest pixels of ``I_dark`` (ties at the cut taken
+       in raster order) are candidates; ``A`` is the input colour of the candidate with the highest
+       intensity, intensity = mean of ``I^c`` over ``C`` (He et al. Sec. 4.4). Candidates tied at
+       that intensity are averaged. ``A`` has all three channels also for UDCP, whose restoration
+       is applied to R, G and B;
     3. raw transmission ``t̃(x) = 1 - ω min_{y∈Ω(x)} min_{c∈C} I^c(y) / A^c`` (He et al. Eq. 7-12:
        Eq. 7 normalizes the model by ``A^c``, Eq. 8-11 take the dark channel of both sides and drop
        ``J``'s, Eq. 12 keeps a little haze with ``ω``; Drews et al.'s transmission for C = {G, B});

@@ -154,6 +154,16 @@ def _has_star() -> bool:
     return hasattr(cv2, "xfeatures2d") and hasattr(cv2.xfeatures2d, "StarDetector_create")
 
 
+def _create(factory: str):
+    """``cv2.<factory>``, or ``cv2.xfeatures2d.<factory>`` where OpenCV 5 moved it (KAZE, AKAZE)."""
+    fn = getattr(cv2, factory, None)
+    if fn is None and hasattr(cv2, "xfeatures2d"):
+        fn = getattr(cv2.xfeatures2d, factory, None)
+    if fn is None:
+        raise ImportError(f"this OpenCV build has no {factory} (opencv-contrib-python-headless 4.x has it)")
+    return fn
+
+
 def _opencv_features(name, grey, mask):
     """Keypoints and raw descriptors from OpenCV; returns (keypoints, descriptors, binary, nbits, detector)."""
     if name == "ORB":
@@ -163,10 +173,10 @@ def _opencv_features(name, grey, mask):
         kp, d = cv2.SIFT_create().detectAndCompute(grey, mask)
         return kp, d, False, 0, "SIFT"
     if name == "KAZE":
-        kp, d = cv2.KAZE_create().detectAndCompute(grey, mask)
+        kp, d = _create("KAZE_create")().detectAndCompute(grey, mask)
         return kp, d, False, 0, "KAZE"
     if name == "AKAZE":
-        kp, d = cv2.AKAZE_create().detectAndCompute(grey, mask)
+        kp, d = _create("AKAZE_create")().detectAndCompute(grey, mask)
         return kp, d, True, 486, "AKAZE"
     if name == "BRIEF":
         if _has_star():
