@@ -4,6 +4,9 @@ The forward half of the paper (issue 8): real frames are dehazed with the simula
 compared with the dark channel prior (:mod:`.dcp`: DCP, UDCP) by counting feature matches between
 frames (:mod:`.features`: ORB, BRIEF, SIFT, SURF, KAZE, AKAZE; paper Table 2 / Fig. 5).
 Submodules are imported on first use of a name.
+
+Import rules: may import :mod:`uw_sil.sim`, :mod:`uw_sil.metrics`, :mod:`uw_sil.bags`,
+:mod:`uw_sil._shared` and :mod:`uw_sil.viz` (numpy, OpenCV, mahotas); never fit or the ROS nodes.
 """
 from __future__ import annotations
 
