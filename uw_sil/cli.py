@@ -187,15 +187,15 @@ def _lazy_progress(desc: str):
 
 
 def _sil_model(args):
-    """(UnderwaterParams, fog) from --params (required for SIL), or (None, None)."""
-    from .enhance.sil import load_params_yaml
+    """(UnderwaterModel, fog) from --params (required for SIL), or (None, None)."""
+    from .enhance.sil import load_model_yaml
 
     if args.params is None:
         if args.method == "sil":
             raise ValueError("--params fit.yaml is required for --method sil (the fitted model)")
         return None, None
-    params, fog, _ = load_params_yaml(args.params)
-    return params, fog
+    model = load_model_yaml(args.params)
+    return model, model.fog
 
 
 def cmd_enhance(args) -> int:

@@ -43,7 +43,7 @@ from ..sim.optics import FOG_MODES, PreparedInverse
 from ..sim.params import RGB_NAMES, UnderwaterParams
 
 __all__ = ["METHODS", "EnhanceResult", "Enhancer", "enhance", "estimate_background", "frame_geometry",
-           "load_params_yaml", "model_parts"]
+           "load_model_yaml", "load_params_yaml", "model_from_parameters", "model_parts"]
 
 METHODS = ("sil", "dcp", "udcp")
 #: Water pixels closer than this to the sim's object silhouette are not used to estimate ``b``.
@@ -137,6 +137,7 @@ class FrameGeometry:
     labels: np.ndarray
     hit: np.ndarray
     camera: Optional[CameraModel] = None
+    part_ids: Optional[np.ndarray] = None      # surfaces of the render (normals of lamp effects), if known
 
     @property
     def water(self) -> np.ndarray:
@@ -182,7 +183,9 @@ def frame_geometry(shape=None, *, geometry=None, depth=None, mask=None, camera: 
         Depth with NaN, zero, negative or ``-inf`` values; object pixels (mask > 0) with infinite depth;
         sizes that differ from each other, from ``shape`` or from the camera.
     """
+    part_ids = None
     if geometry is not None:
+        part_ids = getattr(geometry, "part_ids", None)
         depth = geometry.depth
         mask = getattr(geometry, "labels", getattr(geometry, "mask", None))
         range_m = getattr(geometry, "range", range_m)
@@ -224,7 +227,7 @@ def frame_geometry(shape=None, *, geometry=None, depth=None, mask=None, camera: 
         r = np.asarray(range_m, dtype=np.float32)
         if r.shape != d.shape:
             raise ValueError(f"sim range {r.shape} and sim depth {d.shape} differ in size")
-    return FrameGeometry(d, r, labels, hit, camera)
+    return FrameGeometry(d, r, labels, hit, camera, part_ids)
 
 
 def estimate_background(image, water, erode_px: int = ERODE_PX, min_pixels: int = MIN_WATER_PIXELS,
@@ -364,7 +367,8 @@ class Enhancer:
         """``UnderwaterModel.restore`` (the effects' inverses) on a render-like view of the geometry."""
         if camera is None:
             raise ValueError("SIL with model effects needs the camera")
-        view = _RenderView(np.zeros(geo.depth.shape + (3,), np.float32), geo.depth, geo.range, geo.labels)
+        view = _RenderView(np.zeros(geo.depth.shape + (3,), np.float32), geo.depth, geo.range, geo.labels,
+                           geo.part_ids)
         return self.model.restore(img, view, camera, t0=self.t0, max_gain=self.max_gain, b_override=b_override)
 
 
@@ -376,6 +380,7 @@ class _RenderView:
     depth: np.ndarray
     range: np.ndarray
     labels: np.ndarray
+    part_ids: Optional[np.ndarray] = None
 
 
 def enhance(image, method: str = "sil", *, geometry=None, depth=None, mask=None, camera=None, range_m=None,
@@ -451,3 +456,32 @@ def load_params_yaml(path, node: Optional[str] = None) -> tuple:
     if fog not in FOG_MODES:
         raise ValueError(f"parameters file {p}: fog_mode {fog!r} is not one of {FOG_MODES}")
     return params, fog, dict(ros)
+
+
+def model_from_parameters(values: dict):
+    """The ``UnderwaterModel`` of flat ROS parameters as ``sim_camera`` holds them: ``a_r ... rho_f``,
+    ``fog_mode`` (default exp2) and any effect parameters ``<effect>.<param>`` (other names are ignored).
+    ValueError names a missing or invalid parameter."""
+    from ..sim.model import UnderwaterModel, flat_to_effect_params
+
+    missing = [n for n in RGB_NAMES if n not in values]
+    if missing:
+        raise ValueError(f"missing parameters: {', '.join(missing)}")
+    try:
+        params = UnderwaterParams.from_dict({n: float(values[n]) for n in RGB_NAMES})
+    except TypeError as e:
+        raise ValueError(str(e)) from None
+    fog = values.get("fog_mode", "exp2")
+    if fog not in FOG_MODES:
+        raise ValueError(f"fog_mode {fog!r} is not one of {FOG_MODES}")
+    return UnderwaterModel(params, flat_to_effect_params(values) or None, fog)
+
+
+def load_model_yaml(path, node: Optional[str] = None):
+    """The fitted ``UnderwaterModel`` of a ROS 2 parameters file (see :func:`load_params_yaml`), with the
+    effects its ``<effect>.<param>`` entries name."""
+    _, _, ros = load_params_yaml(path, node)
+    try:
+        return model_from_parameters(ros)
+    except ValueError as e:
+        raise ValueError(f"parameters file {path}: {e}") from None
