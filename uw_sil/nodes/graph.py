@@ -107,10 +107,12 @@ def _enhancer(method: str, b_from_frame: bool, idle_exit: bool) -> NodeSpec:
     return NodeSpec("enhancer", "enhancer", parameters=params, required=idle_exit)
 
 
-def _bag_play(bag, rate, loop, wait_for_nodes) -> NodeSpec:
-    return NodeSpec("bag_play", "bag_play", parameters={
-        "bag": str(bag), "rate": float(rate), "loop": bool(loop), "wait_for_topics": [FORWARD_INPUT],
-        "wait_for_nodes": list(wait_for_nodes), "delay": 0.5})
+def _bag_play(bag, rate, loop, wait_for_topics, wait_for_nodes=()) -> NodeSpec:
+    params = {"bag": str(bag), "rate": float(rate), "loop": bool(loop), "wait_for_topics": list(wait_for_topics),
+              "delay": 0.5}
+    if wait_for_nodes:
+        params["wait_for_nodes"] = list(wait_for_nodes)
+    return NodeSpec("bag_play", "bag_play", parameters=params)
 
 
 def forward_graph(sim_params: Optional[str] = None, bag: Optional[str] = None, rate: float = 1.0, loop: bool = False,
@@ -120,8 +122,9 @@ def forward_graph(sim_params: Optional[str] = None, bag: Optional[str] = None, r
     ``sim_params`` is the fitted parameters file (``uw-sil fit --out fit.yaml``; default
     ``config/sim_camera.yaml``); the enhancer follows ``sim_camera``'s parameters. With a bag (and not
     ``keep_running`` or ``loop``) the enhancer exits ``IDLE_TIMEOUT`` s after the last frame and, being
-    ``required``, ends the graph. ``bag_play`` starts once the enhancer subscribes to the camera, which it
-    does once ``sim_camera`` listens for poses, so no frame is lost to start-up.
+    ``required``, ends the graph. ``bag_play`` starts once its camera and pose publishers have matched the
+    enhancer and sim_camera (the enhancer subscribes once it has sim_camera's parameters), so no frame is
+    lost to start-up.
     """
     sim_params = sim_params or str(share_file("config", "sim_camera.yaml"))
     idle_exit = bool(bag) and not keep_running and not loop
@@ -129,7 +132,9 @@ def forward_graph(sim_params: Optional[str] = None, bag: Optional[str] = None, r
                       parameters=dict(REPLAY_SIM_CAMERA) if bag else {}),
              _enhancer(method, b_from_frame, idle_exit)]
     if bag:
-        nodes.append(_bag_play(bag, rate, loop, ["enhancer"]))
+        # without wait_for_nodes bag_play waits for a *matched* reader on each topic: the enhancer on the
+        # camera, sim_camera on the poses (both are the only readers in this graph)
+        nodes.append(_bag_play(bag, rate, loop, [FORWARD_INPUT, BACKWARD_INPUTS[2]]))
     return nodes
 
 
@@ -150,7 +155,7 @@ def sil_graph(sim_params: Optional[str] = None, bag: Optional[str] = None, outpu
     nodes.append(_enhancer(method, b_from_frame, idle_exit=False))
     if bag:
         nodes[0].parameters.update(REPLAY_SIM_CAMERA)
-        nodes.append(_bag_play(bag, rate, loop, ["backward_fit", "enhancer"]))
+        nodes.append(_bag_play(bag, rate, loop, [FORWARD_INPUT], ["backward_fit", "enhancer"]))
     return nodes
 
 
