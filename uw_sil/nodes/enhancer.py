@@ -5,7 +5,9 @@ or with the image-only baselines DCP / UDCP (:mod:`uw_sil.enhance.sil`).
 Subscribes (sensor-data QoS)
     ``camera/image_raw`` (rgb8, bgr8, rgba8, bgra8; grey images are refused), ``sim/depth`` (32FC1),
     ``sim/mask`` (mono8 labels, 0 water), ``sim/camera_info`` (the intrinsics of the depth), paired by
-    stamp with :class:`uw_sil.bags.stamps.StampSynchronizer` (tolerance ``max_dt``).
+    stamp with :class:`uw_sil.bags.stamps.StampSynchronizer` (tolerance ``max_dt``: an image is paired with
+    the sim frame nearest in stamp, its own when sim_camera rendered its pose; when sim_camera skipped that
+    pose (it renders the newest) a neighbour within ``max_dt`` is used; ``max_dt:=0.0`` demands the own).
     ``/parameter_events``: the model parameters of ``sim_node`` (``a_r a_g a_b b_r b_g b_b rho_f fog_mode``
     and any ``<effect>.<param>``), read from it at start and followed afterwards, so a backward fit that
     re-parameterizes ``sim_camera`` re-parameterizes the enhancer too. ``camera/image_raw`` is subscribed
