@@ -257,11 +257,20 @@ def flat_to_effect_params(flat: dict) -> dict:
 # ============================================================================ the model
 
 
-class RestoreResult(NamedTuple):
+class _RestoreFields(NamedTuple):
     image: np.ndarray            # (H, W, 3) float32 in [0, 1]
     restored_mask: np.ndarray    # (H, W) bool: object pixels that were restored
     restored_fraction: float
-    skipped: tuple = ()          # active effects that restore could not undo
+
+
+class RestoreResult(_RestoreFields):
+    """``(image, restored_mask, restored_fraction)``, plus the attribute ``skipped`` (not unpacked): the
+    active effects restore could not undo."""
+
+    def __new__(cls, image, restored_mask, restored_fraction, skipped=()):
+        self = super().__new__(cls, image, restored_mask, restored_fraction)
+        self.skipped = tuple(skipped)
+        return self
 
 
 class UnderwaterModel:
@@ -475,6 +484,7 @@ class PreparedModel:
         self._other = [e for e in self.effects if e.stage != "geometry"]
         self._base_prep = None
         self._cache = {}
+        self._scratch = None
         self.base_vector = model.params.as_vector()
         self.effect_vector = model.effect_vector()
 
@@ -529,7 +539,12 @@ class PreparedModel:
             if e.stage == "radiance" and not (restoring and e.random_per_frame):
                 e.apply(terms, v, rng_for(e))
         h, w = self.shape
-        T = np.empty((3, h, w), np.float32)
+        if restoring:
+            T = np.empty((3, h, w), np.float32)
+        else:                                        # one buffer per evaluator (results are copied out)
+            if self._scratch is None:
+                self._scratch = np.empty((3, h, w), np.float32)
+            T = self._scratch
         for c in range(3):
             t = T[c]
             np.multiply(prep.r, a[c], out=t)        # same arithmetic as uw_sil.optics.PreparedRender
@@ -570,7 +585,8 @@ class PreparedModel:
             if e.stage == "sensor":
                 e.apply(terms, v, effect_rng(seed, e.name) if e.random_per_frame else None)
         I = terms.I
-        np.clip(I, 0.0, 1.0, out=I)
+        if active:                                   # the base model stays in [0, 1] by itself
+            np.clip(I, 0.0, 1.0, out=I)
         return I
 
     # ------------------------------------------------------------------ call
