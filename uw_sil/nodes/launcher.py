@@ -258,7 +258,7 @@ def add_commands(subparsers) -> None:
     la.add_argument("--max-iter", type=int, help="optimizer iterations (default: the node's)")
     la.add_argument("--rate", type=_positive, default=1.0, help="bag replay rate")
     la.add_argument("--loop", action="store_true", help="replay the bag in a loop")
-    la.add_argument("--sim-params", help="sim_camera parameters YAML, e.g. the fit (default config/sim_camera.yaml)")
+    la.add_argument("--sim-params", help="sim_camera parameters YAML (default config/sim_camera.yaml)")
     la.add_argument("--keep-running", action="store_true",
                     help="with --bag: keep the graph running after the fit, until Ctrl-C")
     la.add_argument("--method", choices=["sil", "dcp", "udcp"], default="sil",
