@@ -35,7 +35,8 @@ import numpy as np
 
 from .params import validate_rgb_params
 
-__all__ = ["transmission", "fog_factor", "degrade", "PreparedRender", "FOG_MODES", "restoration_gain", "restore",
+__all__ = ["transmission", "fog_factor", "degrade", "PreparedRender", "FOG_MODES", "invert_transmission",
+           "restoration_gain", "restore",
            "PreparedInverse"]
 
 FOG_MODES = ("exp2", "exp", "none")
@@ -173,6 +174,18 @@ class PreparedRender:
 # ================================================================================== the inverse
 
 
+def invert_transmission(image, b, T, t0: float = 0.1) -> np.ndarray:
+    """Paper Eq. 1 solved for the clean radiance: ``i = b + (I - b) / max(T, t0)`` (elementwise, broadcasting).
+
+    The one place of the inverse equation: :func:`restore`, :class:`PreparedInverse` (as the gain map
+    ``1 / max(T, t0)``) and :meth:`uw_sil.sim.model.UnderwaterModel.restore` (after removing the
+    backscatter its effects add) all restore through it. ``t0`` bounds the gain (see
+    :class:`PreparedInverse`).
+    """
+    T = np.asarray(T, dtype=np.float32)
+    return b + (np.asarray(image, dtype=np.float32) - b) / np.maximum(T, np.float32(_check_t0(t0)))
+
+
 def restoration_gain(range_m, depth_m, params, fog: str = "exp2", t0: float = 0.1, hit=None) -> np.ndarray:
     """Gain ``g_c = 1 / max(T_c, t0)`` of the inverse model, (H, W, 3) float32; 1 where nothing was hit.
 
@@ -204,11 +217,12 @@ def restore(image, range_m, depth_m, params, fog: str = "exp2", t0: float = 0.1,
     if b is not None:
         p[3:6] = np.asarray(b, dtype=float).reshape(3)
         validate_rgb_params(p)
-    g = restoration_gain(range_m, depth_m, p, fog, t0, hit)
-    bb = p[3:6].astype(np.float32)
-    out = bb + (img - bb) * g
+    r = np.asarray(range_m, dtype=np.float32)
+    z = np.asarray(depth_m, dtype=np.float32)
     if hit is None:
-        hit = np.isfinite(np.asarray(range_m)) & np.isfinite(np.asarray(depth_m))
+        hit = np.isfinite(r) & np.isfinite(z)
+    T = transmission(np.where(hit, r, np.inf), p[0:3]) * fog_factor(np.where(hit, z, 0), p[6], fog)[..., None]
+    out = invert_transmission(img, p[3:6].astype(np.float32), T, t0)
     out = np.where(np.asarray(hit)[..., None], out, img)
     return np.clip(out, 0.0, 1.0).astype(np.float32)
 
