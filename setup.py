@@ -70,6 +70,7 @@ setup(
             "sim_camera = uw_sil.nodes.sim_camera:main",
             "backward_fit = uw_sil.nodes.backward_fit:main",
             "bag_play = uw_sil.nodes.bag_play:main",
+            "enhancer = uw_sil.nodes.enhancer:main",
         ],
     },
 )
