@@ -164,3 +164,16 @@ def test_out_of_order_and_duplicated_stamps_pair_each_image_exactly(tmp_path, na
         i = next(i for i, t in enumerate(stamps) if t == s.stamp_ns and
                  np.array_equal(s.image, corpus.water_image(seed=i)))
         assert i is not None
+
+
+def test_error_line_names_a_relative_bag_once(tmp_path, monkeypatch, capsys):
+    """A relative bag name: the line starts with it (or its directory) once, also when the message starts with
+    a word that begins like the name ("t.mcap" / "topic ...")."""
+    monkeypatch.chdir(tmp_path)
+    corpus.write_bag(tmp_path / "t", corpus.frames(1, topics=(corpus.INFO, corpus.POSE)))
+    assert main(["fit", "--bag", "t.mcap", "--out", "out/fit.yaml"]) == EXIT_BAD_INPUT
+    assert _error_line(capsys.readouterr().err) == (
+        "uw-sil: error: t: topic '/camera/image_raw' is not in the bag; it has: /camera/camera_info "
+        "[sensor_msgs/msg/CameraInfo], /panel/pose [geometry_msgs/msg/PoseStamped]")
+    assert main(["synth", "--out", "t2.mcap", "--frames", "1", "--params", "t=1"]) == EXIT_BAD_INPUT
+    assert _error_line(capsys.readouterr().err).startswith("uw-sil: error: --params: unknown parameter 't'")

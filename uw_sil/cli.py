@@ -59,7 +59,7 @@ def _input(name):
         names = {str(name)}
         if not str(name).startswith("-"):
             names.add(str(Path(name).with_suffix("")))     # trial.mcap -> the bag directory trial/
-        if not any(msg.startswith(n) for n in names):
+        if not any(msg.startswith(n) and msg[len(n):len(n) + 1] in (":", "/", " ") for n in names):
             msg = f"{name}: {msg}"
         raise InputError(msg) from exc
 
