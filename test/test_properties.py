@@ -148,10 +148,11 @@ def scenes(draw):
 @given(params=underwater_params(), render=scenes(), fog=st.sampled_from(["exp2", "exp", "none"]))
 def test_model_inverse_undoes_the_forward_model(params, render, fog):
     """restore(degrade(i)) = i on object pixels (noise-free, no effects): ``i = b + (I - b) / T``, exact up to
-    float32 rounding amplified by 1/T, wherever T is above restore's floor t0; water keeps the recorded colour."""
+    float32 rounding amplified by 1/T, wherever T is above restore's floor t0; water keeps the recorded colour.
+    Both UnderwaterModel.restore and optics.restore."""
     from uw_sil.sim.camera import CameraModel
     from uw_sil.sim.model import UnderwaterModel
-    from uw_sil.sim.optics import fog_factor, transmission
+    from uw_sil.sim.optics import fog_factor, restore, transmission
 
     h, w = render.depth.shape
     cam = CameraModel.from_fov(w, h)
@@ -170,6 +171,10 @@ def test_model_inverse_undoes_the_forward_model(params, render, fog):
     err = np.abs(res.image - render.rgb)
     assert np.all(err[ok] <= 1e-6 + 2e-6 / T[ok]), float(err[ok].max())
     np.testing.assert_array_equal(res.image[~hit], degraded[~hit])
+    # the reference implementation in optics restores the same
+    ref = restore(degraded, render.range, render.depth, params.as_vector(), fog=fog, t0=t0)
+    err = np.abs(ref - render.rgb)
+    assert np.all(err[ok] <= 1e-6 + 2e-6 / T[ok]), float(err[ok].max())
 
 
 # ------------------------------------------------------------------------------------------ theta
