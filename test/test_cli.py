@@ -41,11 +41,19 @@ def test_fit_writes_params_summary_and_report(bag, tmp_path, capsys):
     summary = json.loads((tmp_path / "fit.json").read_text())
     assert summary["optimizer"] == "cmaes" and summary["evaluations"] == 4 * 20
     assert len(summary["history_best_theta"]) == 4
-    assert summary["theta_after"] >= max(summary["history_best_theta"]) - 1e-12
+    # never worse than where the optimizer started (the linear start), which beats the centre of the bounds
+    assert summary["theta_after"] >= summary["theta_optimizer_start"] > summary["theta_before"]
+    assert summary["stop_reason"] == "max_iter" and summary["patience"] > 0 and summary["tol"] > 0
     assert [f["index"] for f in summary["frames"]] == [0, 3]
     for name in ("index.html", "progression.png", "convergence.png", "residual.png"):
         assert (tmp_path / "report" / name).stat().st_size > 1000
     assert "ground truth" in (tmp_path / "report" / "index.html").read_text()
+    # stop on convergence: nothing gains more than 1 in θ, so the fit ends after --patience iterations
+    assert main(["fit", "--bag", str(bag), "--frames", "2", "--stride", "3", "--optimizer", "cmaes", "--tol", "1",
+                 "--patience", "2", "--out", str(tmp_path / "conv.yaml")]) == 0
+    conv = json.loads((tmp_path / "conv.json").read_text())
+    assert conv["stop_reason"] == "converged" and conv["iterations"] == 2 and conv["evaluations"] == 3 * 20
+    assert (conv["tol"], conv["patience"]) == (1.0, 2) and "stop: converged" in capsys.readouterr().out
 
 
 @pytest.mark.parametrize("args, message", [

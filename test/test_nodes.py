@@ -393,10 +393,11 @@ def test_backward_graph_refits_sim_camera_and_stops_on_ctrl_c(trial, tmp_path, m
         fitting = next(s for s in status if s.startswith("fitting"))
         for f in offline.frames:
             assert f"#{f.index} ({f.range_median:.2f} m" in fitting, fitting
-        np.testing.assert_allclose(UnderwaterParams.from_dict(live).as_vector(), offline.params.as_vector(),
-                                   rtol=1e-9, err_msg="the node's fit differs from the offline fit")
+        np.testing.assert_array_equal(UnderwaterParams.from_dict(live).as_vector(), offline.params.as_vector(),
+                                      err_msg="the node's fit differs from the offline fit")
         theta = status[-1].split("theta ")[1].split(" in ")[0].split(" -> ")
-        assert float(theta[1]) == pytest.approx(offline.theta_best, abs=1e-4) and float(theta[1]) > float(theta[0])
+        assert float(theta[1]) == pytest.approx(offline.theta_best, abs=5e-5)     # printed with 4 decimals
+        assert offline.theta_best >= offline.theta_x0           # never worse than the optimizer's start point
         # Ctrl-C: the launcher forwards SIGINT and every node ends cleanly
         assert proc.poll() is None, "the graph ended although --keep-running was given"
         proc.send_signal(signal.SIGINT)

@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .fit.backward import FIT_PATIENCE, FIT_TOL
 from .sim.params import RGB_NAMES, UnderwaterParams
 
 __all__ = ["main", "build_parser", "EXIT_BAD_INPUT"]
@@ -223,9 +224,7 @@ def cmd_fit(args) -> int:
     fits = []
     for m in methods:
         print(f"fitting with {m} ({args.color_model}, channels {args.channels}) ...", file=sys.stderr)
-        opts = {}
-        if args.max_iter is not None:
-            opts["max_iter"] = args.max_iter
+        opts = {name: getattr(args, name) for name in ("max_iter", "tol", "patience") if getattr(args, name) is not None}
         with _input(args.bag):
             fits.append(fit_bag(args.bag, k=args.frames, stride=args.stride, min_coverage=args.min_coverage,
                                 method=m, color_model=args.color_model, channels=args.channels, fog=args.fog,
@@ -238,7 +237,8 @@ def cmd_fit(args) -> int:
     for i, reason in fit.skipped:
         print(f"skipped frame #{i}: {reason}", file=sys.stderr)
     comment = (f"uw_sil backward fit of {args.bag}: {fit.optim.method}, theta {fit.theta_start:.4f} -> "
-               f"{fit.theta_best:.4f}, {fit.optim.n_evals} evaluations, {fit.wall_time_s:.1f} s")
+               f"{fit.theta_best:.4f}, {fit.optim.n_evals} evaluations, {fit.optim.n_iters} iterations "
+               f"(stop: {fit.optim.stop_reason}), {fit.wall_time_s:.1f} s")
     summary = fit.summary()
     summary["bag"] = str(args.bag)
     if rr is not None and (rr.truncated or rr.errors):
@@ -480,7 +480,12 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--start", choices=["linear", "water", "centre"], default="linear",
                    help="optimizer start: least-squares estimate of Eq. 1 (default), background from the "
                         "water only, or the centre of the bounds (the paper)")
-    f.add_argument("--max-iter", type=int, default=None)
+    f.add_argument("--max-iter", type=int, default=None, help="iterations at most (default 100)")
+    f.add_argument("--tol", type=float, default=None,
+                   help=f"stop on convergence: best theta gained <= TOL over --patience iterations (default {FIT_TOL:g})")
+    f.add_argument("--patience", type=int, default=None,
+                   help=f"window of the stop on convergence, in iterations (default {FIT_PATIENCE}); 0: no such stop "
+                        "(--optimizer pso --start centre --patience 0 is the paper's PSO exactly)")
     f.add_argument("--seed", type=int, default=0)
     f.add_argument("--out", default="fit.yaml", help="ROS 2 parameters file for the sim camera node")
     f.add_argument("--summary", help="JSON summary (default: next to --out)")

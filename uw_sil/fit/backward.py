@@ -30,9 +30,15 @@ from .._shared.fileio import write_text_atomic
 from ..sim.params import ParamSpace, UnderwaterParams
 
 __all__ = ["FitFrame", "FrameSelection", "FrameSelector", "select_frames", "BackwardObjective", "FitResult", "fit_frames",
-           "fit_bag", "write_params_yaml", "read_params_yaml", "write_json_atomic", "DEFAULT_NODE_NAME"]
+           "fit_bag", "write_params_yaml", "read_params_yaml", "write_json_atomic", "DEFAULT_NODE_NAME", "FIT_TOL",
+           "FIT_PATIENCE"]
 
 DEFAULT_NODE_NAME = "/**"
+
+#: Stop on convergence of a fit (:func:`fit_frames`): stop once the best θ gained no more than ``FIT_TOL``
+#: over the last ``FIT_PATIENCE`` iterations. Chosen with bench/bench_convergence.py (see the README).
+FIT_TOL = 1e-5
+FIT_PATIENCE = 15
 
 
 @dataclass
@@ -322,6 +328,7 @@ class FitResult:
     hist_pixels: str = "split"
     noise_sigma: list = None
     read_report: object = None         # uw_sil.bags.ReadReport of the bag (fit_bag), else None
+    theta_x0: Optional[float] = None   # θ where the optimizer started (None: PSO's random swarm)
 
     @property
     def noise_level(self) -> float:
@@ -338,6 +345,7 @@ class FitResult:
             "lower": [float(v) for v in self.space.lower],
             "upper": [float(v) for v in self.space.upper],
             "theta_before": float(self.theta_start),
+            "theta_optimizer_start": None if self.theta_x0 is None else float(self.theta_x0),
             "theta_after": float(self.theta_best),
             "optimizer": o.method,
             "seed": o.seed,
@@ -346,6 +354,8 @@ class FitResult:
             "iterations": int(o.n_iters),
             "converged_iteration": o.converged_iter,
             "stop_reason": o.stop_reason,
+            "tol": float(o.tol),
+            "patience": int(o.patience),
             "history_best_theta": [float(v) for v in o.history_best_f],
             "wall_time_s": float(self.wall_time_s),
             "channels": self.channels,
@@ -362,17 +372,23 @@ def fit_frames(frames: list, method: str = "pso", color_model: str = "rgb", chan
                fog: str = "exp2", hist_pixels: str = "split", sim_noise="estimate", lower=None, upper=None,
                seed: Optional[int] = 0,
                start: Optional[UnderwaterParams] = None, x0="linear", progress: bool = False,
-               callback: Optional[Callable] = None, skipped=(), **optim_options) -> FitResult:
+               callback: Optional[Callable] = None, skipped=(), tol: float = FIT_TOL, patience: int = FIT_PATIENCE,
+               **optim_options) -> FitResult:
     """Fit the 7 parameters to already selected frames.
 
-    ``start`` (e.g. the simulator's current parameters) gives θ before the fit; by default the centre of
-    the bounds. ``x0`` is where the optimizer starts:
+    ``start`` (e.g. the simulator's current parameters) gives θ before the fit (``theta_start``); by default
+    the centre of the bounds. ``x0`` is where the optimizer starts (θ there: ``theta_x0``):
 
     - ``'linear'`` (default): :func:`linear_start`, a least-squares estimate of Eq. 1 on the panel
       pixels, with CMA-ES' initial step reduced to 0.1 of each range (unless ``sigma0`` is given);
     - ``'water'``: background from the mean real water colour, the rest at the centre of the bounds;
     - ``None``: the centre of the bounds (the paper's PSO: a random swarm);
     - a vector in the space's coordinates.
+
+    The fit stops on convergence, when the best θ gained no more than ``tol`` over the last ``patience``
+    iterations (:func:`uw_sil.fit.optimize.optimize`; ``stop_reason`` ``"converged"``), or after ``max_iter``
+    iterations (default 100). ``patience=0`` turns that stop off; ``method="pso", x0=None, patience=0`` is
+    the paper's PSO exactly (a random swarm of 20, up to 100 iterations).
 
     For PSO a start is one particle of the otherwise random initial swarm. Measured on a 640x480
     synthetic trial (K = 3, 4.0/3.3/1.9 m), CMA-ES from the centre had θ 0.862 after 100 iterations
@@ -398,16 +414,20 @@ def fit_frames(frames: list, method: str = "pso", color_model: str = "rgb", chan
                 optim_options.setdefault("sigma0", 0.1)
         else:
             raise ValueError(f"x0 must be 'linear', 'water', None or a vector, got {x0!r}")
+    # θ where the search starts: x0, or the centre of the bounds (CMA-ES' first mean; PSO: a random swarm)
+    x_opt_start = np.asarray(x0, dtype=float) if x0 is not None else \
+        ((space.lower + space.upper) / 2 if method == "cmaes" else None)
+    theta_x0 = None if x_opt_start is None else float(obj(x_opt_start[None])[0])
     try:
         res = optimize(obj, space.lower, space.upper, method=method, seed=seed, progress=progress,
-                       callback=callback, names=space.names, x0=x0, **optim_options)
+                       callback=callback, names=space.names, x0=x0, tol=tol, patience=patience, **optim_options)
     finally:
         obj.close()
     params = UnderwaterParams.from_vector(np.clip(space.to_rgb(res.x_best), 0, None), model="rgb") \
         if space.model == "rgb" else UnderwaterParams.from_vector(res.x_best, model="hsv")
     return FitResult(params, np.asarray(res.x_best), float(res.f_best), theta_start, space, res, frames,
                      list(skipped), channels, fog, time.perf_counter() - t0, hist_pixels,
-                     [s.tolist() for s in obj.noise_sigma])
+                     [s.tolist() for s in obj.noise_sigma], theta_x0=theta_x0)
 
 
 def linear_start(frames: list, space: ParamSpace, fog: str = "exp2") -> np.ndarray:
