@@ -1,6 +1,7 @@
 """The ``uw-sil`` command: the core library's offline tools on ROS 2 bags.
 
     uw-sil synth --out trial.mcap [--frames N] [--seed S] [--params a_r=0.4,...] [--storage mcap|sqlite3]
+                 [--effects NAME[=mild|strong],...]
     uw-sil info trial.mcap
     uw-sil fit --bag trial.mcap [--frames K] [--optimizer pso|cmaes] [--color-model rgb|hsv] [--channels HSV]
                [--out fit.yaml] [--report DIR]
@@ -68,7 +69,7 @@ def cmd_synth(args) -> int:
     # The bag writer removes a partial bag when rendering fails or is interrupted; the truth sidecar
     # is written only after the bag is complete.
     truth = synthesize_trial(out, n_frames=args.frames, seed=args.seed, camera=camera, storage=args.storage,
-                             fog=args.fog, start_m=args.start, end_m=args.end,
+                             fog=args.fog, start_m=args.start, end_m=args.end, effects=args.effects,
                              progress=_progress_bar(args.frames, "render"), overwrite=args.force, **kw)
     print(f"wrote bag {truth['bag']} ({args.frames} frames) and {truth_path(out)}")
     if args.contact_sheet:
@@ -189,6 +190,41 @@ def cmd_demo(args) -> int:
     return 0
 
 
+def cmd_batch(args) -> int:
+    from tqdm import tqdm
+
+    from .campaign import find_dives, make_executor, run_campaign, summary_line
+
+    dives = find_dives(args.bags)
+    steps = [s.strip() for s in args.steps.split(",") if s.strip()]
+    options = {"frames": args.frames, "stride": args.stride, "optimizer": args.optimizer, "max_iter": args.max_iter,
+               "seed": args.seed, "report": not args.no_report}
+    executor, close = (None, None) if args.executor == "local" else make_executor(args.executor, args.jobs)
+    print(f"campaign of {len(dives)} dives, steps {','.join(steps)}, executor {args.executor} -> {args.out}",
+          file=sys.stderr)
+    bar = tqdm(total=len(dives), unit="dive", file=sys.stderr, disable=None)
+
+    def progress(done, total, row):
+        bar.update(1)
+        state = "already done" if row.get("skipped") else row.get("status")
+        bar.set_postfix_str(f"{row['dive']}: {state}")
+        if bar.disable or row.get("status") != "ok":       # a line per dive in logs and pipes
+            tqdm.write(f"[{done}/{total}] {row['dive']}: {state}"
+                       + (f" ({row.get('error')})" if row.get("status") != "ok" else ""), file=sys.stderr)
+
+    try:
+        rows = run_campaign(dives, args.out, steps, options, executor=executor, jobs=args.jobs, force=args.force,
+                            retry_failed=args.retry_failed, progress=progress)
+    finally:
+        bar.close()
+        if close:
+            close()
+    print(summary_line(rows))
+    print(f"wrote {Path(args.out) / 'campaign.parquet'} and {Path(args.out) / 'campaign.csv'}")
+    failed = sum(r.get("status") != "ok" for r in rows)
+    return min(failed, 100)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="uw-sil", description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="command", required=True)
@@ -206,6 +242,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--hfov", type=float, default=70.0, help="horizontal field of view in water [deg]")
     s.add_argument("--start", type=float, default=4.0, help="range at the start of the approach [m]")
     s.add_argument("--end", type=float, default=1.2, help="range at the end of the approach [m]")
+    s.add_argument("--effects", help="inject effects the base model lacks (recorded only in the truth sidecar): "
+                   "'NAME[=mild|strong],...' (bare NAME: strong; NAME.PARAM=value overrides), NAME one of "
+                   "artificial_light, forward_scatter, backscatter_coefficient, vignetting, sensor_noise, "
+                   "marine_snow, camera_response, unmodeled_geometry, pose_error")
     s.add_argument("--contact-sheet", help="also write a PNG contact sheet here")
     s.add_argument("--force", action="store_true", help="overwrite an existing bag")
     s.set_defaults(func=cmd_synth)
@@ -250,6 +290,27 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--compare", action="store_true", default=True)
     d.add_argument("--no-compare", dest="compare", action="store_false")
     d.set_defaults(func=cmd_demo)
+
+    b = sub.add_parser("batch", help="a campaign: fit (and diagnose, enhance) every dive of a folder of bags",
+                       description="Runs the per-dive commands over many bags, on this machine (a process pool) "
+                                   "or on a Dask cluster; resumable; a results table campaign.parquet/.csv. "
+                                   "Exit status: the number of dives that failed (0: all ok).")
+    b.add_argument("--bags", nargs="+", required=True,
+                   help="glob pattern(s), quoted, e.g. 'dives/**/*.mcap' (** is recursive), or bag paths")
+    b.add_argument("--out", required=True, help="results folder: <dive>/ per dive and campaign.parquet/.csv")
+    b.add_argument("--steps", default="fit", help="comma-separated, in order: fit, diagnose, enhance (default fit)")
+    b.add_argument("--executor", default="local",
+                   help="'local' (process pool, spawn) or dask://HOST:PORT (a Dask scheduler; uw-sil[dask])")
+    b.add_argument("--jobs", type=int, default=None, help="local workers (default: number of cores)")
+    b.add_argument("--force", action="store_true", help="redo every dive, also those already done")
+    b.add_argument("--retry-failed", action="store_true", help="redo the dives that failed last time")
+    b.add_argument("--frames", type=int, default=None, help="K frames per fit (default: uw-sil fit's)")
+    b.add_argument("--stride", type=int, default=None)
+    b.add_argument("--optimizer", choices=["pso", "cmaes"], default="cmaes")
+    b.add_argument("--max-iter", type=int, default=None)
+    b.add_argument("--seed", type=int, default=0)
+    b.add_argument("--no-report", action="store_true", help="skip the per-dive HTML/PNG reports")
+    b.set_defaults(func=cmd_batch)
 
     from .nodes.launcher import add_commands as add_launch_commands  # `uw-sil launch`, `uw-sil play`
     add_launch_commands(sub)

@@ -13,6 +13,10 @@ Parameters (live, validated; set with ``ros2 param set`` or the parameter servic
     ``fog_mode`` (exp2|exp|none), ``noise_sigma`` (camera noise in grey levels); read-only: ``model_path``, ``width``, ``height``, ``hfov_deg``,
     ``queue_size`` (1: poses arriving while a frame renders replace each other, so the newest is
     rendered next; raise it to render every pose of a burst, at the cost of latency).
+    ``effects`` (read-only string, default ""): effects of :mod:`uw_sil.sim.effects` added to the model,
+    ``"NAME[=mild|strong],..."``; for each listed effect its parameters ``<effect>.<param>`` are declared
+    (live, with ranges; initial values: the preset if given, else the effect's defaults; a params file
+    overrides them).
 """
 from __future__ import annotations
 
@@ -26,6 +30,8 @@ from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import CameraInfo, Image
 
 from ..sim.camera import CameraModel
+from ..sim.effects import get_effect
+from ..sim.model import flat_to_effect_params
 from ..bags.imgmsg import depth_to_image_fields, rgb_to_image_fields
 from ..sim.optics import FOG_MODES
 from ..sim.params import RGB_NAMES, UNITS, UnderwaterParams
@@ -73,6 +79,9 @@ def _descriptor(name: str) -> ParameterDescriptor:
         "hfov_deg": lambda: ParameterDescriptor(
             description="horizontal field of view [deg] until a camera_info arrives; read at start",
             read_only=True, floating_point_range=_float_range(1.0, 179.0)),
+        "effects": lambda: ParameterDescriptor(
+            description="effects added to the model: NAME[=mild|strong],... (uw_sil.sim.effects); read at start",
+            read_only=True),
         "queue_size": lambda: ParameterDescriptor(
             description="poses queued while a frame renders (1: the newest replaces older ones); read at start",
             read_only=True, integer_range=_int_range(1, 1000)),
@@ -86,16 +95,18 @@ class SimCameraNode(Node):
         for n in RGB_NAMES:
             self.declare_parameter(n, defaults[n], _descriptor(n))
         for n, default in (("fog_mode", "exp2"), ("noise_sigma", 0.0), ("model_path", ""), ("width", 640),
-                           ("height", 480), ("hfov_deg", 70.0), ("queue_size", 1)):
+                           ("height", 480), ("hfov_deg", 70.0), ("queue_size", 1), ("effects", "")):
             self.declare_parameter(n, default, _descriptor(n))
+        self._effect_names = self._declare_effects(self.get_parameter("effects").value)
         g = self.get_parameter
         # Start-up values (parameter files, -p) pass the same checks as later changes.
-        reason = self._check({n: g(n).value for n in (*RGB_NAMES, "fog_mode", "noise_sigma")})
+        reason = self._check({n: g(n).value for n in (*RGB_NAMES, "fog_mode", "noise_sigma", *self._effect_keys)})
         if reason:
             raise ValueError(f"sim_camera: {reason}")
         camera = CameraModel.from_fov(g("width").value, g("height").value, g("hfov_deg").value)
         self.sim = SimCamera(self._params_from(dict()), camera=camera, model=g("model_path").value or None,
-                             fog=g("fog_mode").value, noise_sigma=g("noise_sigma").value)
+                             fog=g("fog_mode").value, noise_sigma=g("noise_sigma").value,
+                             effects=self._effects_from(dict()))
         # Check a whole batch first, apply it only once every entry has passed (and rclpy has stored it):
         # a batch rejected by its last entry changes nothing.
         self.add_on_set_parameters_callback(self._on_set_parameters)
@@ -114,6 +125,33 @@ class SimCameraNode(Node):
         self.get_logger().info(f"ready: {camera.width}x{camera.height} until a camera_info arrives, fog "
                                f"{self.sim.fog}; rendering each pose on {pose_sub.topic_name}")
 
+    def _declare_effects(self, spec: str) -> list:
+        names = []
+        for item in (s.strip() for s in str(spec).split(",")):
+            if not item:
+                continue
+            name, eq, level = item.partition("=")
+            eff = get_effect(name.strip())
+            values = eff.severity(level.strip()) if eq else eff.defaults()
+            for p in eff.params:
+                self.declare_parameter(f"{eff.name}.{p.name}", float(values[p.name]), ParameterDescriptor(
+                    description=f"{eff.name}: {p.description}" + (f" [{p.unit}]" if p.unit else ""),
+                    floating_point_range=[FloatingPointRange(from_value=float(p.lo), to_value=float(p.hi), step=0.0)]))
+            names.append(eff.name)
+        return names
+
+    def _effects_from(self, changes: dict) -> dict:
+        flat = {}
+        for name in self._effect_names:
+            for p in get_effect(name).param_names:
+                key = f"{name}.{p}"
+                flat[key] = float(changes.get(key, self.get_parameter(key).value))
+        return flat_to_effect_params(flat)
+
+    @property
+    def _effect_keys(self) -> list:
+        return [f"{name}.{p}" for name in self._effect_names for p in get_effect(name).param_names]
+
     def _params_from(self, changes: dict) -> UnderwaterParams:
         d = {n: float(changes.get(n, self.get_parameter(n).value)) for n in RGB_NAMES}
         return UnderwaterParams.from_dict(d)
@@ -124,6 +162,7 @@ class SimCameraNode(Node):
         Changes nothing. Ranges and types are also enforced by rclpy from the descriptors, before this."""
         try:
             self._params_from(changes)
+            self._effects_from(changes)
         except (ValueError, TypeError) as e:
             return str(e)
         fog = changes.get("fog_mode")
@@ -147,6 +186,8 @@ class SimCameraNode(Node):
             self.sim.fog = self.get_parameter("fog_mode").value
         if "noise_sigma" in names:
             self.sim.noise_sigma = self.get_parameter("noise_sigma").value
+        if names & set(self._effect_keys):
+            self.sim.effects = self._effects_from(dict())
 
     def _on_camera_info(self, msg: CameraInfo):
         try:
