@@ -178,8 +178,10 @@ def main(argv=None):
     samples = []      # (t, {name: rss})
     duration = args.minutes * 60
     try:
-        if not started.wait(120):
-            raise SystemExit(f"the graph did not start within 120 s; see {work / 'launch.log'}")
+        deadline = time.monotonic() + 120
+        while not started.wait(0.5):
+            if launch.poll() is not None or time.monotonic() > deadline:
+                raise SystemExit(f"the graph did not start (launch status {launch.poll()}); see {work / 'launch.log'}")
         t_start = time.monotonic()
         while True:
             t = time.monotonic() - t_start

@@ -121,6 +121,25 @@ def test_uw_sil_launch_stops_cleanly_on_repeated_signals(trial, sim_params, sign
         launch.stop()
 
 
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["INT", "TERM"])
+def test_backward_fit_stops_cleanly_while_waiting_for_sim_camera(trial, sig):
+    """After the fit the node waits (up to 10 s) for sim_camera's parameter services in its fit thread;
+    a signal then destroyed the client under the thread: a traceback from the thread."""
+    specs = backward_graph(bag=str(trial), frames=2, stride=4, optimizer="cmaes", max_iter=2, keep_running=True)
+    procs = _start(specs, domain_id(), names={"backward_fit", "bag_play"})     # no sim_camera
+    try:
+        fit = procs["backward_fit"]
+        fit.wait_for(r"setting the parameters of sim_camera", timeout=START)
+        fit.signal(sig)
+        time.sleep(0.1)
+        fit.signal(sig)
+        fit.wait_group(STOP)
+        assert fit.popen.returncode == 0, fit.text
+        assert_clean_output(fit.text, "backward_fit")
+    finally:
+        _stop_all(procs)
+
+
 def _owned_segments(pgid: int) -> set:
     """Fast DDS shared-memory segments owned by the processes of a group: those whose ``_el`` lock file
     they hold locked (``/proc/locks``); they also map the segments of the processes they read from."""
@@ -202,9 +221,9 @@ def test_sigkill_of_backward_fit_mid_fit_loses_nothing(trial, sim_params, tmp_pa
         assert watcher.status[-1].startswith("done") and "re-parameterized" in watcher.status[-1], watcher.status
         fitted = yaml.safe_load(out_yaml.read_text())["/**"]["ros__parameters"]
         assert _sim_values(ex, watcher) == {n: fitted[n] for n in RGB_NAMES} != sim_values
-        # the restarted node removed the segments the killed one left in /dev/shm
+        # the restarted nodes removed the segments the killed one left in /dev/shm (whichever started first)
         assert not any(Path(s).exists() for s in segments), segments
-        assert "left in /dev/shm by killed processes" in procs["backward_fit"].text
+        assert any("left in /dev/shm by killed processes" in procs[n].text for n in ("backward_fit", "bag_play"))
     finally:
         _stop_all(procs)
         ex.shutdown()

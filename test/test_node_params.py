@@ -253,3 +253,22 @@ def test_backward_fit_rejects_bad_start_values(ros):
 
     with pytest.raises(ValueError, match="optimizer: 'nelder' is not one of"):
         BackwardFitNode(context=ros, parameter_overrides=[Parameter("optimizer", value="nelder")])
+
+
+def test_nodes_interrupted_while_starting_shut_down_cleanly(ros, monkeypatch):
+    """Ctrl-C while a node builds its renderer: rclpy still destroys the half-built node at shutdown, which
+    raised AttributeError (no renderer yet) and made the node exit 1 with a traceback."""
+    import uw_sil.nodes.sim_camera as sim_camera
+    import uw_sil.sim.render as render
+    from uw_sil.nodes.backward_fit import BackwardFitNode
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(render, "Renderer", interrupted)
+    monkeypatch.setattr(sim_camera, "SimCamera", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        BackwardFitNode(context=ros)
+    with pytest.raises(KeyboardInterrupt):
+        sim_camera.SimCameraNode(context=ros)
+    ros.try_shutdown()          # destroys both half-built nodes

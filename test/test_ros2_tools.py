@@ -44,26 +44,24 @@ CLI = ("--no-daemon", "--spin-time", "3")
 class Workspace:
     venv: Path
     install: Path          # colcon install base
-    site: Path             # its Python packages
+    sourced: dict          # the environment after `source <venv>/bin/activate; source install/setup.bash`
     status_before: str
     status_after: str
 
     def env(self, domain: int) -> dict:
-        env = ros_env(domain)
-        env["AMENT_PREFIX_PATH"] = str(self.install / "uw_sil")
-        env["PYTHONPATH"] = os.pathsep.join(p for p in (str(self.site), env.get("PYTHONPATH")) if p)
-        env["PATH"] = os.pathsep.join((str(self.venv / "bin"), env.get("PATH", "")))
+        env = ros_env(domain, base=self.sourced)
         env["ROS_LOG_DIR"] = str(self.install.parent / "ros_log")
         return env
 
     def cmd(self, *args) -> list:
         return [str(self.venv / "bin" / "ros2"), *map(str, args)]
 
-    def run(self, domain: int, *commands, timeout: float = 120.0) -> list:
-        """Run ``ros2`` commands at once (each a tuple of arguments); their completed processes."""
-        env = self.env(domain)
-        procs = [subprocess.Popen(self.cmd(*c), env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                                  text=True, start_new_session=True) for c in commands]
+    def run(self, domain, *commands, timeout: float = 120.0) -> list:
+        """Run ``ros2`` commands at once (each a tuple of arguments) on ROS_DOMAIN_ID ``domain`` (or a list
+        of domains, one per command); their completed processes."""
+        domains = domain if isinstance(domain, (list, tuple)) else [domain] * len(commands)
+        procs = [subprocess.Popen(self.cmd(*c), env=self.env(d), stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                  text=True, start_new_session=True) for c, d in zip(commands, domains)]
         done = []
         for c, p in zip(commands, procs):
             try:
@@ -104,8 +102,13 @@ def ws(tmp_path_factory) -> Workspace:
                         str(base / "build"), "--install-base", str(base / "install")], cwd=base,
                        capture_output=True, text=True, timeout=600, env={**os.environ, "PYTHONPATH": ""})
     assert r.returncode == 0, f"colcon build failed:\n{r.stdout}\n{r.stderr}"
-    site = next((base / "install" / "uw_sil" / "lib").glob("python3*/site-packages"))
-    return Workspace(venv, base / "install", site, before, _git_status())
+    # what the README says to do before `ros2 launch/run`: the venv's and the workspace's setup scripts
+    r = subprocess.run(["bash", "-c", f"source {venv / 'bin' / 'activate'} && source {base / 'install' / 'setup.bash'}"
+                        " && env -0"], capture_output=True, timeout=60, env={**os.environ, "PYTHONPATH": ""})
+    assert r.returncode == 0, r.stderr.decode(errors="replace")
+    sourced = dict(item.split("=", 1) for item in r.stdout.decode().split("\0") if "=" in item)
+    assert str(base / "install" / "uw_sil") in sourced["AMENT_PREFIX_PATH"].split(os.pathsep)
+    return Workspace(venv, base / "install", sourced, before, _git_status())
 
 
 @pytest.fixture(scope="module")
@@ -280,11 +283,13 @@ def _node_pid(proc: Proc, executable: str) -> int:
 
 
 def test_ros2_run_sim_camera_and_ros2_param(ws, fit_yaml):
-    from uw_sil.sim.params import RGB_NAMES, UnderwaterParams
+    from uw_sil.sim.params import RGB_NAMES
 
     domain = domain_id()
-    node = ws.start(domain, "run", "uw_sil", "sim_camera", "--ros-args", "-p", "width:=160", "-p", "height:=120",
-                    name="ros2 run sim_camera")
+    fitted = yaml.safe_load(fit_yaml.read_text())["/**"]["ros__parameters"]
+    assert set(RGB_NAMES) <= set(fitted)
+    node = ws.start(domain, "run", "uw_sil", "sim_camera", "--ros-args", "--params-file", fit_yaml, "-p", "width:=160",
+                    "-p", "height:=120", name="ros2 run sim_camera")
     probe = None
     try:
         node.wait_for(r"\[sim_camera\]: ready", timeout=START)
@@ -297,11 +302,10 @@ def test_ros2_run_sim_camera_and_ros2_param(ws, fit_yaml):
         probe = FrameProbe(domain)
         before = probe.frames_after(0.0, 2)[-1]
 
-        default = UnderwaterParams().as_dict()["a_r"]
         get, describe = ws.run(domain, ("param", "get", *CLI, "/sim_camera", "a_r"),
                                ("param", "describe", *CLI, "/sim_camera", "a_r", "width", "height", "hfov_deg",
                                 "queue_size", "model_path", "fog_mode", "noise_sigma"))
-        assert get.stdout.strip() == f"Double value is: {default}", get.stdout
+        assert get.stdout.strip() == f"Double value is: {fitted['a_r']}", get.stdout     # from --params-file
         blocks = _describe(describe.stdout)
         assert list(blocks) == ["a_r", "width", "height", "hfov_deg", "queue_size", "model_path", "fog_mode",
                                 "noise_sigma"], describe.stdout
@@ -337,9 +341,7 @@ def test_ros2_run_sim_camera_and_ros2_param(ws, fit_yaml):
         assert load.returncode == 0 and "failed" not in load.stdout.lower(), load.stdout
         dump = ws.run(domain, ("param", "dump", *CLI, "/sim_camera"))[0]
         live = yaml.safe_load(dump.stdout)["/sim_camera"]["ros__parameters"]
-        fitted = yaml.safe_load(fit_yaml.read_text())["/**"]["ros__parameters"]
         assert {n: live[n] for n in fitted} == fitted and fitted["a_r"] != 1.5
-        assert set(RGB_NAMES) <= set(fitted)
     finally:
         if probe is not None:
             probe.close()
@@ -359,7 +361,7 @@ def test_ros2_tools_on_the_running_graph(ws, trial, tmp_path):
     `ros2 param dump` of every node round-trips through --params-file; Ctrl-C stops the graph cleanly."""
     from uw_sil.bags import open_bag
 
-    domain, other = domain_id(), domain_id()
+    domain, other, third = domain_id(), domain_id(), domain_id()
     rate = 1.5
     launch = ws.start(domain, "launch", "uw_sil", "backward.launch.py", f"bag:={trial}", "loop:=true",
                       f"rate:={rate}", "keep_running:=true", "max_iter:=3", "optimizer:=cmaes")
@@ -405,12 +407,14 @@ def test_ros2_tools_on_the_running_graph(ws, trial, tmp_path):
         for n in NODES:
             files[n] = tmp_path / f"{n}.yaml"
             files[n].write_text(yaml.safe_dump({f"/{n}": {"ros__parameters": dumped[n]}}))
-        copies = [ws.start(other, "run", "uw_sil", n, "--ros-args", "--params-file", files[n], name=f"copy {n}")
-                  for n in NODES]
+        # (sim_camera in a domain of its own: the copy of backward_fit would re-parameterize it)
+        where = {"sim_camera": other, "backward_fit": third, "bag_play": third}
+        copies = [ws.start(where[n], "run", "uw_sil", n, "--ros-args", "--params-file", files[n],
+                           name=f"copy {n}") for n in NODES]
         for c, pattern in zip(copies, (r"\[sim_camera\]: ready", r"\[backward_fit\]: collecting",
                                        r"\[bag_play\]: .* playing at rate")):
             c.wait_for(pattern, timeout=START)
-        again = ws.run(other, *[("param", "dump", *CLI, f"/{n}") for n in NODES])
+        again = ws.run([where[n] for n in NODES], *[("param", "dump", *CLI, f"/{n}") for n in NODES])
         for n, d in zip(NODES, again):
             assert yaml.safe_load(d.stdout)[f"/{n}"]["ros__parameters"] == dumped[n], (n, d.stdout)
     finally:

@@ -170,8 +170,9 @@ def run_node(make_node: Callable, spin: Optional[Callable] = None, args=None, na
         print(f"usage: ros2 run uw_sil {name or 'NODE'} [--ros-args -p NAME:=VALUE | --params-file FILE | "
               f"-r FROM:=TO ...]\n\n{doc.strip()}")
         return 0
-    try:
-        signal.signal(signal.SIGTERM, _interrupt)   # SIGTERM stops a node like Ctrl-C, also while it starts
+    try:   # SIGTERM stops a node like Ctrl-C, also while it starts; both are noted (see _interrupt)
+        for s in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(s, _interrupt)
     except ValueError:                              # not the main thread: leave signals alone
         pass
     try:
@@ -190,7 +191,15 @@ def run_node(make_node: Callable, spin: Optional[Callable] = None, args=None, na
     return code
 
 
-def _interrupt(_signum, _frame):
+#: Stop signals this process received (see :func:`_interrupt`).
+_stop_signals: list = []
+
+
+def _interrupt(signum, _frame):
+    """SIGINT/SIGTERM: note it, raise KeyboardInterrupt. Noted, because the KeyboardInterrupt does not always
+    arrive as one: raised while ctypes converts an argument (an OpenGL call of the renderer) it comes out
+    as ``ctypes.ArgumentError('argument 2: KeyboardInterrupt')``."""
+    _stop_signals.append(signum)
     raise KeyboardInterrupt
 
 
@@ -220,11 +229,12 @@ def _run_node(make_node, spin, args, name, user_errors) -> int:
         pass
     except (*user_errors, ParameterException) as e:
         _ignore_signals()
-        logger.error(str(e))
-        code = 1
+        if not _stop_signals:
+            logger.error(str(e))
+            code = 1
     except Exception:
         _ignore_signals()
-        if rclpy.ok():
+        if rclpy.ok() and not _stop_signals:   # an error, not a stop request that surfaced as one
             raise
     finally:
         _ignore_signals()

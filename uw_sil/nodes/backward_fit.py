@@ -280,6 +280,18 @@ class BackwardFitNode(Node):
         self.fit_thread.start()
 
     def _fit(self, selection, options: dict):
+        """The fit thread: never dies with a traceback (a shutdown under it ends it quietly)."""
+        try:
+            self._fit_and_apply(selection, options)
+        except Exception as e:
+            if not self.context.ok():   # Ctrl-C: the node's handles went away under the fit; nothing to report
+                return
+            try:
+                self._finish(False, f"failed: {type(e).__name__}: {e}")
+            except Exception:           # the node itself is gone
+                pass
+
+    def _fit_and_apply(self, selection, options: dict):
         g = options.__getitem__
         frames = ", ".join(f"#{f.index} ({f.range_median:.2f} m, {100 * f.coverage:.0f}% panel)"
                            for f in selection.frames)
@@ -310,6 +322,7 @@ class BackwardFitNode(Node):
         values.append(Parameter("fog_mode", value=g("fog_mode")))
         values.append(Parameter("noise_sigma", value=fit.noise_level))
         sim = g("sim_node")
+        self.get_logger().info(f"{summary}: setting the parameters of {sim}")
         if not self.sim_params.wait_for_services(timeout_sec=10.0):
             self._finish(False, f"failed: {summary}, but the parameter services of {sim} are not available")
             return
@@ -328,7 +341,10 @@ class BackwardFitNode(Node):
         self.sim_params.set_parameters_atomically(values).add_done_callback(on_response)
 
     def destroy_node(self):
-        self.renderer.close()
+        # Also for a node whose constructor was interrupted (Ctrl-C while the renderer starts): rclpy
+        # destroys the nodes of a context at shutdown, built or not.
+        if getattr(self, "renderer", None) is not None:
+            self.renderer.close()
         super().destroy_node()
 
 

@@ -216,7 +216,10 @@ class SimCameraNode(Node):
         self.frames += 1
 
     def destroy_node(self):
-        self.sim.close()
+        # Also for a node whose constructor was interrupted (Ctrl-C while the renderer starts): rclpy
+        # destroys the nodes of a context at shutdown, built or not.
+        if getattr(self, "sim", None) is not None:
+            self.sim.close()
         super().destroy_node()
 
 
