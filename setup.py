@@ -56,7 +56,7 @@ setup(
         ],
         # `uw-sil batch --executor dask://HOST:PORT`
         "dask": ["dask[distributed]>=2024.1"],
-        "test": ["pytest>=7", "dask[distributed]>=2024.1"],
+        "test": ["pytest>=7", "dask[distributed]>=2024.1", "hypothesis>=6.100"],
     },
     zip_safe=True,
     maintainer="uw_sil developers",
@@ -70,6 +70,7 @@ setup(
             "sim_camera = uw_sil.nodes.sim_camera:main",
             "backward_fit = uw_sil.nodes.backward_fit:main",
             "bag_play = uw_sil.nodes.bag_play:main",
+            "enhancer = uw_sil.nodes.enhancer:main",
         ],
     },
 )

@@ -4,7 +4,6 @@ import io
 import os
 import signal
 import stat
-import threading
 import time
 
 import pytest
@@ -66,18 +65,38 @@ def test_share_file_finds_the_fastdds_profile():
 # ------------------------------------------------------------------------------------------ launcher
 
 FAKE_PYTHON = r"""#!/bin/bash
-# Stands in for `python -m uw_sil.nodes.NAME --ros-args ...`: behaves according to NAME.
+# Stands in for `python -m uw_sil.nodes.NAME --ros-args ...`: behaves according to NAME. A long-running
+# node creates the file $READY once its signal traps are set; quick and fail wait for it (when READY is
+# set), so the launcher never signals a node that has not yet installed its traps, however busy the machine.
 name="${2#uw_sil.nodes.}"
 echo "profile=$FASTDDS_DEFAULT_PROFILES_FILE"
 echo -n "partial line without newline"; echo " completed"
+wait_ready() { if [ -n "$READY" ]; then while [ ! -e "$READY" ]; do sleep 0.02; done; fi; }
+ready() { if [ -n "$READY" ]; then touch "$READY"; fi; }
 case "$name" in
-  quick) sleep 0.5; echo "finished"; exit 0 ;;
-  fail) sleep 0.2; echo "something broke" >&2; echo "[ERROR] [1795368386.5] [fail]: bag /x does not exist" >&2
+  quick) wait_ready; sleep 0.2; echo "finished"; exit 0 ;;
+  fail) wait_ready; sleep 0.2; echo "something broke" >&2; echo "[ERROR] [1795368386.5] [fail]: bag /x does not exist" >&2
         echo "later output"; exit 3 ;;
-  stubborn) trap '' INT TERM; while :; do sleep 0.05; done ;;
-  *) trap 'echo "got SIGINT"; exit 0' INT; while :; do sleep 0.05; done ;;
+  stubborn) trap '' INT TERM; ready; echo "ignoring signals"; while :; do sleep 0.05; done ;;
+  *) trap 'echo "got SIGINT"; exit 0' INT; ready; echo "trapping SIGINT"; while :; do sleep 0.05; done ;;
 esac
 """
+
+
+class SignalOn(io.StringIO):
+    """Launcher output that sends this process SIGINT (a Ctrl-C) each time the next of ``triggers`` appears
+    in it: the test reacts to what the launcher did, not to a timer racing it."""
+
+    def __init__(self, *triggers):
+        super().__init__()
+        self.triggers = list(triggers)
+
+    def write(self, text):
+        n = super().write(text)
+        while self.triggers and self.triggers[0] in self.getvalue():
+            self.triggers.pop(0)
+            os.kill(os.getpid(), signal.SIGINT)
+        return n
 
 
 @pytest.fixture
@@ -100,10 +119,11 @@ def _pids(text: str) -> list:
     return [int(line.split("(pid ")[1].split(")")[0]) for line in text.splitlines() if "(pid " in line]
 
 
-def test_required_node_ends_the_graph(fake_python):
+def test_required_node_ends_the_graph(fake_python, tmp_path):
     out = io.StringIO()
     rc = launcher.launch([NodeSpec("server", "server"), NodeSpec("quick", "quick", required=True)],
-                         env={"PATH": os.environ["PATH"]}, out=out, python=fake_python)
+                         env={"PATH": os.environ["PATH"], "READY": str(tmp_path / "ready")}, out=out,
+                         python=fake_python)
     text = out.getvalue()
     assert rc == 0, text
     assert "[quick ] finished" in text                     # output prefixed with the (padded) node name
@@ -115,16 +135,11 @@ def test_required_node_ends_the_graph(fake_python):
     assert not any(_alive(p) for p in _pids(text))
 
 
-def test_a_node_that_ends_normally_does_not_end_the_graph(fake_python):
-    out = io.StringIO()
-    timer = threading.Timer(1.0, os.kill, (os.getpid(), signal.SIGINT))
-    timer.start()
-    try:
-        rc = launcher.launch([NodeSpec("server", "server"), NodeSpec("quick", "quick")],
-                             env={"PATH": os.environ["PATH"], "FASTDDS_DEFAULT_PROFILES_FILE": "/mine.xml"},
-                             out=out, python=fake_python)
-    finally:
-        timer.cancel()
+def test_a_node_that_ends_normally_does_not_end_the_graph(fake_python, tmp_path):
+    out = SignalOn("quick exited with status 0")        # Ctrl-C once quick has ended
+    rc = launcher.launch([NodeSpec("server", "server"), NodeSpec("quick", "quick")],
+                         env={"PATH": os.environ["PATH"], "FASTDDS_DEFAULT_PROFILES_FILE": "/mine.xml",
+                              "READY": str(tmp_path / "ready")}, out=out, python=fake_python)
     text = out.getvalue()
     # the server kept running after `quick` ended, until Ctrl-C, which it got once and obeyed
     assert rc == 0, text
@@ -134,10 +149,11 @@ def test_a_node_that_ends_normally_does_not_end_the_graph(fake_python):
     assert not any(_alive(p) for p in _pids(text))
 
 
-def test_failing_node_stops_the_graph_with_an_error(fake_python):
+def test_failing_node_stops_the_graph_with_an_error(fake_python, tmp_path):
     out = io.StringIO()
-    rc = launcher.launch([NodeSpec("server", "server"), NodeSpec("fail", "fail")], env={"PATH": os.environ["PATH"]},
-                         out=out, python=fake_python)
+    rc = launcher.launch([NodeSpec("server", "server"), NodeSpec("fail", "fail")],
+                         env={"PATH": os.environ["PATH"], "READY": str(tmp_path / "ready")}, out=out,
+                         python=fake_python)
     text = out.getvalue()
     assert rc == 1
     assert "[fail  ] something broke" in text               # stderr is shown too
@@ -147,11 +163,12 @@ def test_failing_node_stops_the_graph_with_an_error(fake_python):
     assert "FAILED: fail (bag /x does not exist)" in text
 
 
-def test_node_ignoring_signals_is_killed_and_reported(fake_python):
+def test_node_ignoring_signals_is_killed_and_reported(fake_python, tmp_path):
     out = io.StringIO()
     t0 = time.monotonic()
     rc = launcher.launch([NodeSpec("stubborn", "stubborn"), NodeSpec("quick", "quick", required=True)],
-                         env={"PATH": os.environ["PATH"]}, out=out, python=fake_python, stop_timeout=0.3)
+                         env={"PATH": os.environ["PATH"], "READY": str(tmp_path / "ready")}, out=out,
+                         python=fake_python, stop_timeout=0.3)
     text = out.getvalue()
     assert rc == 1, text
     assert "sending SIGTERM" in text and "sending SIGKILL" in text and "killed by SIGKILL" in text
@@ -160,17 +177,11 @@ def test_node_ignoring_signals_is_killed_and_reported(fake_python):
 
 
 def test_repeated_ctrl_c_escalates_at_once(fake_python):
-    out = io.StringIO()
-    timers = [threading.Timer(t, os.kill, (os.getpid(), signal.SIGINT)) for t in (0.8, 1.1, 1.4)]
-    for t in timers:
-        t.start()
+    # Ctrl-C once the node ignores signals, again once the launcher is stopping it, a third time after SIGTERM
+    out = SignalOn("[stubborn] ignoring signals", "SIGINT received: stopping stubborn", "sending SIGTERM")
     t0 = time.monotonic()
-    try:
-        rc = launcher.launch([NodeSpec("stubborn", "stubborn")], env={"PATH": os.environ["PATH"]}, out=out,
-                             python=fake_python, stop_timeout=60)
-    finally:
-        for t in timers:
-            t.cancel()
+    rc = launcher.launch([NodeSpec("stubborn", "stubborn")], env={"PATH": os.environ["PATH"]}, out=out,
+                         python=fake_python, stop_timeout=60)
     text = out.getvalue()
     assert rc == 1 and "sending SIGTERM" in text and "sending SIGKILL" in text, text
     assert time.monotonic() - t0 < 10                      # not 2 x stop_timeout
@@ -253,3 +264,15 @@ def test_failure_reason_is_the_last_error_a_node_printed():
     assert graph.failure_reason(lines + tb) == tb[-1]
     assert graph.failure_reason(["[bag_play-3] [FATAL] [1.5] [bag_play]: out of memory"]) == "out of memory"
     assert graph.failure_reason(["all good", "[WARN] [1.0] [n]: hm"]) == ""
+
+
+@pytest.mark.parametrize("name", sorted(graph.GRAPHS))
+def test_each_graph_has_a_generated_launch_file(name):
+    """launch/<graph>.launch.py is the graph's generated description (launchgen; run with the real launch tools
+    in test_ros2_tools): its arguments and nodes cannot drift from `uw-sil launch <graph>`."""
+    text = graph.share_file("launch", f"{name}.launch.py").read_text()
+    assert "from uw_sil.nodes.launchgen import generate" in text and f'return generate("{name}")' in text
+    g = graph.GRAPHS[name]
+    assert g.name == name and len({a.name for a in g.arguments}) == len(g.arguments)
+    for a in g.arguments:                  # each one documented in the launch file's usage line
+        assert f"{a.name}:=" in text, a.name

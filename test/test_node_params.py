@@ -8,7 +8,9 @@ import time
 import numpy as np
 import pytest
 
-rclpy = pytest.importorskip("rclpy", reason="ROS 2 Python packages (the `ros` extra) are not installed")
+from conftest import import_or_skip  # noqa: E402  (skips locally, fails in CI when rclpy is missing)
+
+rclpy = import_or_skip("rclpy", reason="ROS 2 Python packages (the `ros` extra) are not installed")
 
 pytestmark = pytest.mark.filterwarnings("ignore:module 'sre_:DeprecationWarning")
 

@@ -27,7 +27,9 @@ import yaml
 ROOT = Path(__file__).resolve().parents[1]
 ROS2_CLI = Path(os.environ.get("UW_SIL_ROS2_CLI") or ROOT.parent / "shared" / "ros2-cli")
 
-rclpy = pytest.importorskip("rclpy", reason="ROS 2 Python packages (the `ros` extra) are not installed")
+from conftest import import_or_skip  # noqa: E402  (skips locally, fails in CI when rclpy is missing)
+
+rclpy = import_or_skip("rclpy", reason="ROS 2 Python packages (the `ros` extra) are not installed")
 pytestmark = pytest.mark.filterwarnings("ignore:module 'sre_:DeprecationWarning")
 
 from rosproc import Proc, assert_clean_output, domain_id, ros_env  # noqa: E402
@@ -206,6 +208,40 @@ def test_ros2_launch_ends_with_a_failed_node_and_names_bad_arguments(ws, tmp_pat
     assert set(names) == {"bag", "output_yaml", "sim_params", "frames", "stride", "optimizer", "max_iter", "rate",
                           "loop", "keep_running"}, show.stdout
     assert "no description given" not in show.stdout
+
+
+def test_ros2_launch_forward_and_sil_end_by_themselves(ws, trial, fit_yaml, tmp_path):
+    """The other two launch files: forward (sim_camera + enhancer) with the fit of `uw-sil fit` enhances every
+    replayed frame and ends after the bag; sil (backward + forward) ends after the fit, which it writes."""
+    import json
+
+    sil_yaml = tmp_path / "sil_fit.yaml"
+    forward = ws.start(domain_id(), "launch", "uw_sil", "forward.launch.py", f"bag:={trial}", f"sim_params:={fit_yaml}",
+                       name="ros2 launch forward")
+    sil = ws.start(domain_id(), "launch", "uw_sil", "sil.launch.py", f"bag:={trial}", f"output_yaml:={sil_yaml}",
+                   "max_iter:=3", "optimizer:=cmaes", "frames:=2", "stride:=4", name="ros2 launch sil")
+    shown = ws.run(1, *[("launch", "uw_sil", f"{g}.launch.py", "--show-args") for g in ("forward", "sil")])
+    try:
+        forward.wait_group(START + 60)
+        sil.wait_group(START + 60)
+    finally:
+        forward.stop()
+        sil.stop()
+    for launch, nodes in ((forward, ("sim_camera", "enhancer", "bag_play")),
+                          (sil, ("sim_camera", "backward_fit", "enhancer", "bag_play"))):
+        assert launch.popen.returncode == 0, launch.text
+        for node in nodes:
+            assert re.search(rf"\[{node}-\d\]: process has finished cleanly", launch.text), launch.text
+        assert_clean_output(launch.text, launch.name)
+    done = json.loads(re.search(r"\[enhancer\]: .*done; (\{.*\})", forward.text).group(1))
+    assert done["enhanced"] == 12, done
+    assert re.search(r"\[backward_fit\]: done: theta", sil.text), sil.text
+    assert set(yaml.safe_load(sil_yaml.read_text())["/**"]["ros__parameters"]) >= {"a_r", "rho_f", "noise_sigma"}
+    from uw_sil.nodes.graph import GRAPHS
+
+    for g, r in zip(("forward", "sil"), shown):
+        names = re.findall(r"^    '(\w+)':$", r.stdout, flags=re.M)
+        assert names == [a.name for a in GRAPHS[g].arguments] and "no description given" not in r.stdout, r.stdout
 
 
 # ------------------------------------------------------------------------------------------ ros2 run + ros2 param

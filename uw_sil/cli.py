@@ -1,13 +1,18 @@
 """The ``uw-sil`` command: the core library's offline tools on ROS 2 bags.
 
-    uw-sil synth --out trial.mcap [--frames N] [--seed S] [--params a_r=0.4,...] [--storage mcap|sqlite3]
+    uw-sil synth --out trial.mcap [--frames N] [--seed S] [--params a_r=0.4,...|fit.yaml] [--storage mcap|sqlite3]
                  [--effects NAME[=mild|strong],...]
     uw-sil info trial.mcap
     uw-sil fit --bag trial.mcap [--frames K] [--optimizer pso|cmaes] [--color-model rgb|hsv] [--channels HSV]
                [--out fit.yaml] [--report DIR]
-    uw-sil demo [--out-dir out]          # synth -> contact sheet -> fit -> report
+    uw-sil enhance --bag trial.mcap --params fit.yaml --out enhanced.mcap [--method sil|dcp|udcp] [--b-from-frame]
+    uw-sil features --bag trial.mcap --params fit.yaml [--frames I,J] [--csv table.csv] [--report DIR]
+    uw-sil demo [--out-dir out]          # synth -> contact sheet -> fit -> enhance -> features -> report
 
-Exit codes: 0 success, 1 bad input (message on stderr), 130 interrupted (no partial outputs left).
+Exit codes: 0 success; 2 bad input or command line: a wrong, damaged or unusable input file or option
+value is reported as ONE line ``uw-sil: error: <file or option>: <what is wrong>`` on stderr (argparse's
+own syntax errors add a usage line), and no output is left; 130 interrupted (no partial outputs left).
+Anything else is a bug: Python's traceback and exit status 1.
 """
 from __future__ import annotations
 
@@ -16,43 +21,100 @@ import signal
 import sys
 import threading
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 
 from .sim.params import RGB_NAMES, UnderwaterParams
 
-__all__ = ["main", "build_parser"]
+__all__ = ["main", "build_parser", "EXIT_BAD_INPUT"]
+
+#: Exit status for a bad input file or option value (as argparse uses for command-line errors).
+EXIT_BAD_INPUT = 2
+
+# Errors of reading or validating an input: the user's to fix, reported as one line.
+_INPUT_ERRORS = (ValueError, FileNotFoundError, FileExistsError, IsADirectoryError, NotADirectoryError,
+                 PermissionError)
+
+
+class InputError(Exception):
+    """A bad input file or option value, already worded as ``<input>: <what is wrong>``."""
+
+
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+@contextmanager
+def _input(name):
+    """Errors of reading or checking the input ``name`` (a path or an option) become :class:`InputError`
+    whose message starts with the input (unless the message already starts with it or its bag directory)."""
+    try:
+        yield
+    except InputError:
+        raise
+    except _INPUT_ERRORS as exc:
+        msg = _one_line(exc)
+        names = {str(name)}
+        if not str(name).startswith("-"):
+            names.add(str(Path(name).with_suffix("")))     # trial.mcap -> the bag directory trial/
+        if not any(msg.startswith(n) and msg[len(n):len(n) + 1] in (":", "/", " ") for n in names):
+            msg = f"{name}: {msg}"
+        raise InputError(msg) from exc
+
+
+def _check_option(name: str, value, ok: bool, need: str):
+    if not ok:
+        raise InputError(f"{name}: must be {need}, got {value}")
 
 
 def _parse_params(text: str) -> UnderwaterParams:
     """``a_r=0.4,a_g=0.1,...`` (names from RGB_NAMES, missing ones from the default truth) or 7 numbers."""
     from .bags.synth import DEFAULT_TRUTH
 
+    def number(name, value):
+        try:
+            return float(value)
+        except ValueError:
+            raise ValueError(f"{name} must be a number, got {value.strip()!r}") from None
+
     text = text.strip()
     if "=" not in text:
-        vals = [float(v) for v in text.replace(",", " ").split()]
-        if len(vals) != 7:
-            raise ValueError(f"--params needs 7 numbers ({', '.join(RGB_NAMES)}) or name=value pairs")
-        return UnderwaterParams.from_vector(vals)
+        items = text.replace(",", " ").split()
+        if len(items) != 7:
+            raise ValueError(f"{len(items)} numbers given, 7 needed ({', '.join(RGB_NAMES)}), or name=value pairs")
+        return UnderwaterParams.from_vector([number(n, v) for n, v in zip(RGB_NAMES, items)])
     d = DEFAULT_TRUTH.as_dict()
     for item in filter(None, (s.strip() for s in text.split(","))):
         name, _, value = item.partition("=")
         name = name.strip()
         if name not in d:
             raise ValueError(f"unknown parameter {name!r}; known: {', '.join(RGB_NAMES)}")
-        d[name] = float(value)
+        d[name] = number(name, value)
     return UnderwaterParams.from_dict(d)
 
 
-def _progress_bar(total: int, desc: str):
-    from tqdm import tqdm
+def _synth_params(text: str):
+    """(params, fog mode or None) of ``--params``: name=value pairs, 7 numbers, or a parameters file."""
+    if Path(text).suffix in (".yaml", ".yml") or Path(text).is_file():
+        from .fit.backward import read_params_yaml
 
-    bar = tqdm(total=total, desc=desc, unit="frame", file=sys.stderr, disable=None)
+        with _input(text):
+            doc = read_params_yaml(text)
+        return doc["params"], doc["fog"]
+    with _input("--params"):
+        return _parse_params(text), None
+
+
+def _progress_bar(total: int, desc: str):
+    """A ``progress(done, total)`` callback drawing :func:`uw_sil._shared.progress.progress_bar` on stderr."""
+    from ._shared.progress import progress_bar
+
+    bar = progress_bar(total, desc, unit="frame", file=sys.stderr)
 
     def update(done, _total):
-        bar.n = done
-        bar.refresh()
+        bar.update(done - bar.n)
         if done >= _total:
             bar.close()
     return update
@@ -63,14 +125,18 @@ def cmd_synth(args) -> int:
     from .bags.synth import synthesize_trial, truth_path
 
     out = Path(args.out)
-    params = _parse_params(args.params) if args.params else None
-    camera = CameraModel.from_fov(args.width, args.height, args.hfov)
+    params, fog = _synth_params(args.params) if args.params else (None, None)
+    _check_option("--frames", args.frames, args.frames >= 1, ">= 1")
+    with _input("--width/--height/--hfov"):
+        camera = CameraModel.from_fov(args.width, args.height, args.hfov)
     kw = {} if params is None else {"params": params}
     # The bag writer removes a partial bag when rendering fails or is interrupted; the truth sidecar
     # is written only after the bag is complete.
-    truth = synthesize_trial(out, n_frames=args.frames, seed=args.seed, camera=camera, storage=args.storage,
-                             fog=args.fog, start_m=args.start, end_m=args.end, effects=args.effects,
-                             progress=_progress_bar(args.frames, "render"), overwrite=args.force, **kw)
+    with _input(args.out):
+        truth = synthesize_trial(out, n_frames=args.frames, seed=args.seed, camera=camera, storage=args.storage,
+                                 fog=args.fog or fog or "exp2", start_m=args.start, end_m=args.end,
+                                 effects=args.effects, progress=_progress_bar(args.frames, "render"),
+                                 overwrite=args.force, **kw)
     print(f"wrote bag {truth['bag']} ({args.frames} frames) and {truth_path(out)}")
     if args.contact_sheet:
         _contact_sheet(out, Path(args.contact_sheet))
@@ -103,7 +169,8 @@ def _contact_sheet(bag: Path, png: Path, rows: int = 4):
 def cmd_info(args) -> int:
     from .bags import open_bag
 
-    info = open_bag(args.bag)
+    with _input(args.bag):
+        info = open_bag(args.bag)
     print(info.describe() if hasattr(info, "describe") else info)
     return 0
 
@@ -122,9 +189,24 @@ def _sim_noise(text: str):
     if text in ("estimate", "none"):
         return text
     try:
-        return float(text)
+        value = float(text)
     except ValueError:
-        raise ValueError(f"--sim-noise must be 'estimate', 'none' or a number of grey levels, got {text!r}") from None
+        value = float("nan")
+    if not value >= 0 or value == float("inf"):
+        raise InputError(f"--sim-noise: must be 'estimate', 'none' or a number of grey levels, got {text!r}")
+    return value
+
+
+def _warn_if_damaged(bag) -> None:
+    """One warning line when the bag is cut off or damaged (the fit then uses every intact frame)."""
+    from .bags import open_bag
+
+    with _input(bag):
+        rep = open_bag(bag).report
+    if rep.truncated:
+        lost = f"; lost {rep.lost}" if rep.lost else ""
+        print(f"warning: {bag}: cut off or damaged: {rep.bytes_unreadable} of {rep.bytes_total} bytes unreadable"
+              f"{lost}; fitting the intact frames", file=sys.stderr)
 
 
 def cmd_fit(args) -> int:
@@ -132,31 +214,43 @@ def cmd_fit(args) -> int:
     from .fit.report import write_report
 
     methods = [args.optimizer] + ([m for m in ("pso", "cmaes") if m != args.optimizer] if args.compare else [])
+    _check_option("--frames", args.frames, args.frames >= 1, ">= 1")
+    _check_option("--stride", args.stride, args.stride >= 1, ">= 1")
+    _check_option("--min-coverage", args.min_coverage, 0 <= args.min_coverage < 1, "in [0, 1)")
+    _check_option("--max-iter", args.max_iter, args.max_iter is None or args.max_iter >= 1, ">= 1")
+    sim_noise = _sim_noise(args.sim_noise)
+    _warn_if_damaged(args.bag)
     fits = []
     for m in methods:
         print(f"fitting with {m} ({args.color_model}, channels {args.channels}) ...", file=sys.stderr)
         opts = {}
         if args.max_iter is not None:
             opts["max_iter"] = args.max_iter
-        fits.append(fit_bag(args.bag, k=args.frames, stride=args.stride, min_coverage=args.min_coverage,
-                            method=m, color_model=args.color_model, channels=args.channels, fog=args.fog,
-                            hist_pixels=args.hist_pixels, sim_noise=_sim_noise(args.sim_noise),
-                            x0=None if args.start == "centre" else args.start, callback=_raise_if_interrupted,
-                            seed=args.seed, progress=True, **opts))
+        with _input(args.bag):
+            fits.append(fit_bag(args.bag, k=args.frames, stride=args.stride, min_coverage=args.min_coverage,
+                                method=m, color_model=args.color_model, channels=args.channels, fog=args.fog,
+                                hist_pixels=args.hist_pixels, sim_noise=sim_noise,
+                                x0=None if args.start == "centre" else args.start, callback=_raise_if_interrupted,
+                                seed=args.seed, progress=True, **opts))
     _raise_if_interrupted()
     fit = fits[0]
+    rr = fit.read_report      # damage found while reading (a bad chunk, a bad record) was logged as a warning
     for i, reason in fit.skipped:
         print(f"skipped frame #{i}: {reason}", file=sys.stderr)
     comment = (f"uw_sil backward fit of {args.bag}: {fit.optim.method}, theta {fit.theta_start:.4f} -> "
                f"{fit.theta_best:.4f}, {fit.optim.n_evals} evaluations, {fit.wall_time_s:.1f} s")
-    write_params_yaml(args.out, fit.params, node_name=args.node_name, fog=args.fog, comment=comment,
-                      noise_sigma=fit.noise_level)
     summary = fit.summary()
     summary["bag"] = str(args.bag)
+    if rr is not None and (rr.truncated or rr.errors):
+        summary["bag_damage"] = {"truncated": rr.truncated, "lost": rr.lost, "errors": list(rr.errors)}
     if len(fits) > 1:
         summary["other_runs"] = [f.summary() for f in fits[1:]]
     summary_path = Path(args.summary) if args.summary else Path(args.out).with_suffix(".json")
-    write_json_atomic(summary_path, summary)
+    with _input(args.out):
+        write_params_yaml(args.out, fit.params, node_name=args.node_name, fog=args.fog, comment=comment,
+                          noise_sigma=fit.noise_level)
+    with _input(summary_path):
+        write_json_atomic(summary_path, summary)
     print(comment)
     print("fitted: " + ", ".join(f"{k}={v:.4f}" for k, v in fit.params.as_dict().items()))
     print(f"wrote {args.out} and {summary_path}")
@@ -169,6 +263,112 @@ def cmd_fit(args) -> int:
         except FileNotFoundError:
             pass
         page = write_report(fits, args.report, truth=truth, title=f"uw_sil backward fit: {Path(args.bag).name}")
+        print(f"wrote report {page}")
+    return 0
+
+
+def _lazy_progress(desc: str):
+    """A progress callback ``(done, total)`` that opens its bar on the first call (total known then)."""
+    state = {}
+
+    def update(done, total):
+        if "bar" not in state:
+            state["bar"] = _progress_bar(total, desc)
+        state["bar"](done, total)
+    return update
+
+
+def _sil_model(args):
+    """(UnderwaterModel, fog) from --params (required for SIL), or (None, None)."""
+    from .enhance.sil import load_model_yaml
+
+    if args.params is None:
+        if args.method == "sil":
+            raise ValueError("--params fit.yaml is required for --method sil (the fitted model)")
+        return None, None
+    model = load_model_yaml(args.params)
+    return model, model.fog
+
+
+def cmd_enhance(args) -> int:
+    from .enhance.bagtool import ENHANCED_TOPIC, enhance_bag
+
+    params, fog = _sil_model(args)
+    res = enhance_bag(args.bag, args.out, params, method=args.method, fog=fog, t0=args.t0,
+                      b_from_frame=args.b_from_frame, overwrite=args.force, progress=_lazy_progress("enhance"),
+                      interrupted=_raise_if_interrupted)
+    _raise_if_interrupted()
+    print(f"wrote bag {res.path}: {ENHANCED_TOPIC} ({args.method}) for {res.frames_out} of {res.frames_in} frames "
+          f"next to {res.copied} recorded messages; mean restored fraction {res.restored_fraction_mean:.3f}")
+    if res.frames_out < res.frames_in:
+        print(f"{res.frames_in - res.frames_out} frames had no pose within tolerance and were not enhanced",
+              file=sys.stderr)
+    if res.skipped_topics:
+        print(f"not copied (message types unknown to ROS 2 Kilted): {', '.join(res.skipped_topics)}", file=sys.stderr)
+    return 0
+
+
+def _frame_pair(text, bag) -> tuple:
+    from .bags import open_bag
+    from .enhance.bagtool import default_feature_frames
+
+    if text is None:
+        return default_feature_frames(open_bag(bag).topics["/camera/image_raw"].count or 0)
+    try:
+        i, j = (int(v) for v in text.split(","))
+    except ValueError:
+        raise ValueError(f"--frames must be two frame numbers I,J, got {text!r}") from None
+    if i == j or min(i, j) < 0:
+        raise ValueError(f"--frames needs two different frames >= 0, got {text!r}")
+    return i, j
+
+
+def cmd_features(args) -> int:
+    from .enhance.bagtool import enhance_all, feature_rows, frames_with_geometry, quality_markdown, quality_rows
+    from .enhance.features import table_csv, table_markdown
+
+    args.method = "sil"
+    params, fog = _sil_model(args)
+    i, j = _frame_pair(args.frames, args.bag)
+    shown = [i, j]
+    if args.report:                                 # Fig. 4 also shows a far frame of the approach
+        far = max(0, min(i, j) // 3)
+        if far not in shown:
+            shown.append(far)
+    frames = frames_with_geometry(args.bag, shown)
+    _raise_if_interrupted()
+    images = enhance_all(frames, params, fog, t0=args.t0, b_from_frame=args.b_from_frame)
+    rows = feature_rows(frames[:2], images[:2], args.descriptors)
+    _raise_if_interrupted()
+    md = table_markdown(rows)
+    print(f"feature matches between frames #{i} and #{j} of {args.bag}:\n")
+    print(md)
+    verified = {(r["pair"], r["descriptor"]): r["verified_matches"] for r in rows}
+    descs = list(dict.fromkeys(r["descriptor"] for r in rows))
+    for other in ("raw", "DCP", "UDCP"):
+        k = sum(verified[("SIL", d)] > verified[(other, d)] for d in descs)
+        print(f"SIL has more verified matches than {other} for {k} of {len(descs)} descriptors")
+    if args.csv:
+        table_csv(rows, args.csv)
+        print(f"wrote {args.csv}")
+    if args.report:
+        from .enhance.report import write_forward_report
+
+        quality = qmd = None
+        try:
+            from .bags.synth import load_truth
+
+            load_truth(args.bag)
+            quality = quality_rows(frames, images)
+            qmd = quality_markdown(quality)
+            print(qmd)
+        except FileNotFoundError:
+            pass                                    # a real trial: no clean radiance to compare with
+        page = write_forward_report(args.report, frames, images, rows, md, quality, qmd or "",
+                                    descriptor=args.figure_descriptor,
+                                    title=f"uw_sil forward half: {Path(args.bag).name}",
+                                    notes=f"SIL with {args.params} (t0 = {args.t0}); DCP/UDCP: He et al. 2011 / "
+                                          f"Drews et al. 2013 (patch 15, omega 0.95, t0 0.1, guided filter r 60).")
         print(f"wrote report {page}")
     return 0
 
@@ -186,6 +386,11 @@ def cmd_demo(args) -> int:
     if args.compare:
         fit_args.append("--compare")
     cmd_fit(build_parser().parse_args(fit_args))
+    # forward half: enhance the trial with the fitted model, then Table 2 / Fig. 4-5 into the same report
+    cmd_enhance(build_parser().parse_args(["enhance", "--bag", str(bag), "--params", str(out / "fit.yaml"), "--out",
+                                           str(out / "enhanced.mcap"), "--force"]))
+    cmd_features(build_parser().parse_args(["features", "--bag", str(bag), "--params", str(out / "fit.yaml"),
+                                            "--csv", str(out / "features.csv"), "--report", str(out / "report")]))
     print(f"demo done in {time.perf_counter() - t0:.0f} s: open {out / 'report' / 'index.html'}")
     return 0
 
@@ -233,10 +438,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", required=True, help="bag to write, e.g. trial.mcap")
     s.add_argument("--frames", type=int, default=30)
     s.add_argument("--seed", type=int, default=0)
-    s.add_argument("--params", help="ground truth: 'a_r=0.4,b_g=0.3,...' or 7 numbers " + " ".join(RGB_NAMES))
+    s.add_argument("--params", help="ground truth: 'a_r=0.4,b_g=0.3,...', 7 numbers " + " ".join(RGB_NAMES)
+                   + ", or a parameters file (.yaml) as `uw-sil fit` writes it")
     s.add_argument("--storage", choices=["mcap", "sqlite3"], default=None,
                    help="default: from the suffix of --out (.mcap or .db3; none: mcap)")
-    s.add_argument("--fog", choices=["exp2", "exp", "none"], default="exp2")
+    s.add_argument("--fog", choices=["exp2", "exp", "none"], default=None,
+                   help="fog mode (default: the parameters file's fog_mode, else exp2)")
     s.add_argument("--width", type=int, default=640)
     s.add_argument("--height", type=int, default=480)
     s.add_argument("--hfov", type=float, default=70.0, help="horizontal field of view in water [deg]")
@@ -281,7 +488,31 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--report", help="write PNG figures and index.html here")
     f.set_defaults(func=cmd_fit)
 
-    d = sub.add_parser("demo", help="synthesize a trial, fit it and write the report")
+    e = sub.add_parser("enhance", help="dehaze a recorded trial with the fitted model (SIL), or DCP/UDCP, "
+                                       "into a new bag with /camera/image_enhanced")
+    e.add_argument("--bag", required=True)
+    e.add_argument("--params", help="fitted parameters (uw-sil fit --out fit.yaml); required for --method sil")
+    e.add_argument("--out", required=True, help="bag to write, e.g. enhanced.mcap (directory enhanced/)")
+    e.add_argument("--method", choices=["sil", "dcp", "udcp"], default="sil")
+    e.add_argument("--b-from-frame", action="store_true",
+                   help="re-estimate the background b on every frame from its water pixels")
+    e.add_argument("--t0", type=float, default=0.1, help="lowest transmission divided by (gain cap 1/t0)")
+    e.add_argument("--force", action="store_true", help="overwrite an existing output bag")
+    e.set_defaults(func=cmd_enhance)
+
+    ft = sub.add_parser("features", help="feature matches between two frames: raw, DCP, UDCP and SIL (Table 2)")
+    ft.add_argument("--bag", required=True)
+    ft.add_argument("--params", required=True, help="fitted parameters (fit.yaml)")
+    ft.add_argument("--frames", help="two frame numbers I,J (default: at 55%% and 70%% of the trial)")
+    ft.add_argument("--descriptors", nargs="+", help="default: ORB BRIEF SIFT SURF KAZE AKAZE")
+    ft.add_argument("--csv", help="write the table as CSV here")
+    ft.add_argument("--report", help="write Fig. 4 / Fig. 5 analogues and forward.html into this directory")
+    ft.add_argument("--figure-descriptor", default="SIFT", help="descriptor of the Fig. 5 picture")
+    ft.add_argument("--b-from-frame", action="store_true")
+    ft.add_argument("--t0", type=float, default=0.1)
+    ft.set_defaults(func=cmd_features)
+
+    d = sub.add_parser("demo", help="synthesize a trial, fit it, enhance it and write the report")
     d.add_argument("--out-dir", default="out")
     d.add_argument("--frames", type=int, default=30)
     d.add_argument("--seed", type=int, default=0)
@@ -317,6 +548,22 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+@contextmanager
+def _warnings_to_stderr():
+    """The library's logged warnings (damaged bags, dropped frames...) as ``warning: ...`` lines on stderr."""
+    import logging
+
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setLevel(logging.WARNING)
+    handler.setFormatter(logging.Formatter("warning: %(message)s"))
+    logger = logging.getLogger("uw_sil")
+    logger.addHandler(handler)
+    try:
+        yield
+    finally:
+        logger.removeHandler(handler)
+
+
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     interrupted = _INTERRUPTED
@@ -328,16 +575,17 @@ def main(argv=None) -> int:
 
     previous = signal.signal(signal.SIGINT, on_sigint) if threading.current_thread() is threading.main_thread() else None
     try:
-        return args.func(args)
+        with _warnings_to_stderr():
+            return args.func(args)
     except KeyboardInterrupt:
         print("interrupted: no output written", file=sys.stderr)
         return 130
-    except (ValueError, FileNotFoundError) as e:
+    except (InputError, *_INPUT_ERRORS) as e:
         if interrupted:   # Ctrl-C inside a third-party import or callback may surface as another error
             print("interrupted: no output written", file=sys.stderr)
             return 130
-        print(f"uw-sil {args.command}: error: {e}", file=sys.stderr)
-        return 1
+        print(f"uw-sil: error: {_one_line(e)}", file=sys.stderr)
+        return EXIT_BAD_INPUT
     except Exception:
         if interrupted:
             print("interrupted: no output written", file=sys.stderr)

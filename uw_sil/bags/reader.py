@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import logging
 import re
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator, NamedTuple
@@ -37,7 +38,7 @@ from .imgmsg import compressed_to_rgb, image_to_rgb
 from .mcap_recover import McapFormatError, McapScanReport, iter_mcap, read_mcap_summary
 from .records import (CAMERA_INFO_TYPE, COMPRESSED_IMAGE_TYPE, IMAGE_TYPE, POSE_TYPE, STORAGE_SUFFIX, BagError,
                       Sample)
-from .stamps import StampSynchronizer, SyncStats
+from .stamps import StampSynchronizer, SyncStats, seconds_to_ns
 
 __all__ = [
     "TopicInfo", "ReadReport", "BagInfo", "RawMessage", "open_bag", "iter_raw", "iter_messages", "read_samples",
@@ -233,7 +234,7 @@ def resolve_bag_path(path) -> Path:
         d = p.with_suffix("")
         if p.suffix in (".mcap", ".db3") and (d / p.name).is_file():
             return d
-        raise FileNotFoundError(f"bag {p} does not exist")
+        raise FileNotFoundError(f"{p}: does not exist (expected a bag directory, a .mcap or a .db3 file)")
     return p
 
 
@@ -248,7 +249,7 @@ def _layout(path) -> _Layout:
                 storage = meta["storage_identifier"]
                 rel = list(meta["relative_file_paths"])
             except (yaml.YAMLError, OSError, KeyError, TypeError) as exc:
-                raise BagError(f"{meta_path} is not a readable rosbag2 metadata file: {exc!r}") from None
+                raise BagError(f"{meta_path}: not a readable rosbag2 metadata file: {_one_line(exc)}") from None
             if storage not in STORAGE_SUFFIX:
                 raise BagError(f"{p}: storage {storage!r} is not supported (supported: mcap, sqlite3)")
             files = [p / Path(x).name for x in rel]
@@ -264,9 +265,9 @@ def _layout(path) -> _Layout:
                  for s, suf in STORAGE_SUFFIX.items()}
         kinds = [s for s, fs in found.items() if fs]
         if not kinds:
-            raise BagError(f"{p} is not a ROS 2 bag: no metadata.yaml and no .mcap or .db3 file in it")
+            raise BagError(f"{p}: not a ROS 2 bag: no metadata.yaml and no .mcap or .db3 file in it")
         if len(kinds) > 1:
-            raise BagError(f"{p} has no metadata.yaml and holds both .mcap and .db3 files: pass one file")
+            raise BagError(f"{p}: no metadata.yaml, and both .mcap and .db3 files in it: pass one file")
         log.warning("%s has no metadata.yaml (recording not closed?): reading its %s file(s) directly", p,
                     kinds[0])
         return _Layout(p, kinds[0], found[kinds[0]], None)
@@ -274,7 +275,7 @@ def _layout(path) -> _Layout:
     if kind is None:
         size = p.stat().st_size
         what = "an empty file" if size == 0 else "neither an MCAP nor an SQLite file"
-        raise BagError(f"{p} is not a ROS 2 bag: {what} (expected a bag directory, a .mcap or a .db3 file)")
+        raise BagError(f"{p}: not a ROS 2 bag: {what} (expected a bag directory, a .mcap or a .db3 file)")
     return _Layout(p, kind, [p], None)
 
 
@@ -349,7 +350,7 @@ def _merge_mcap(report: ReadReport, r: McapScanReport) -> None:
     for t, n in r.messages.items():
         report.read[t] = report.read.get(t, 0) + n
     report.bytes_unreadable += r.bytes_unreadable
-    if r.truncated or r.skipped_chunks:
+    if r.truncated or r.skipped_chunks or r.errors:      # cut off, or damaged records: messages may be missing
         report.truncated = True
     report.errors += [f"{Path(r.path).name}: {e}" for e in r.errors]
 
@@ -366,16 +367,18 @@ def _raw_stream(layout: _Layout, topics, report: ReadReport, types: _Types | Non
                     if not ch.msgtype:
                         raise BagError(f"{f}: topic {ch.topic} has no schema (message type unknown)")
                     if ch.message_encoding != "cdr":
-                        raise BagError(f"{ch.topic}: message encoding {ch.message_encoding!r} is not ROS 2 CDR")
+                        raise BagError(f"{f}: topic {ch.topic}: message encoding {ch.message_encoding!r} is not "
+                                       f"ROS 2 CDR")
                     if types is not None:
                         types.add(ch.msgtype, ch.schema_encoding, ch.schema_data)
                     yield ch.topic, ch.msgtype, m.log_time, m.data
             except McapFormatError as exc:
                 raise BagError(str(exc)) from None
-            _merge_mcap(report, r)
-            if r.truncated:
-                log.warning("%s is cut off or damaged: read %d complete messages, %d of %d bytes unreadable (%s)",
-                            f, sum(r.messages.values()), r.bytes_unreadable, r.size, "; ".join(r.errors))
+            finally:  # also when the reader stops early: the report tells what was read and found so far
+                _merge_mcap(report, r)
+                if r.truncated or r.skipped_chunks or r.errors:
+                    log.warning("%s is cut off or damaged: read %d complete messages, %d of %d bytes unreadable "
+                                "(%s)", f, sum(r.messages.values()), r.bytes_unreadable, r.size, "; ".join(r.errors))
         return
     from rosbags.interfaces import MessageDefinitionFormat
 
@@ -417,6 +420,14 @@ def _sqlite_units(layout):
         yield unit
 
 
+def _one_line(exc: Exception) -> str:
+    """An exception's message on one line; for a YAML syntax error the problem and where it is."""
+    mark, problem = getattr(exc, "problem_mark", None), getattr(exc, "problem", None)
+    if mark is not None and problem:
+        return f"YAML syntax error: {problem} (line {mark.line + 1}, column {mark.column + 1})"
+    return " ".join(str(exc).split()) or type(exc).__name__
+
+
 def _sqlite_errors() -> tuple:
     """Exceptions SQLite raises through rosbags (it uses apsw, and may use the standard module)."""
     import sqlite3
@@ -429,7 +440,7 @@ def _sqlite_errors() -> tuple:
 
 
 def _sqlite_open_error(root: Path, exc: Exception) -> str:
-    return (f"cannot open sqlite3 bag {root}: {exc} (a damaged or cut-off sqlite3 file cannot be read here; "
+    return (f"{root}: cannot open sqlite3 bag: {exc} (a damaged or cut-off sqlite3 file cannot be read here; "
             f"SQLite's own `sqlite3 in.db3 .recover | sqlite3 out.db3` may salvage it)")
 
 
@@ -481,7 +492,7 @@ def _open_layout(layout: _Layout) -> BagInfo:
             try:
                 summ = read_mcap_summary(f)
             except OSError as exc:
-                raise BagError(f"cannot read {f}: {exc}") from None
+                raise BagError(f"{f}: cannot read: {exc}") from None
             if summ is not None:
                 for t, ch in summ.channels.items():
                     types[t] = ch.msgtype
@@ -533,6 +544,17 @@ def _open_layout(layout: _Layout) -> BagInfo:
     return BagInfo(layout.root, layout.storage, [str(f) for f in layout.files], topics, start, end, rep)
 
 
+@contextmanager
+def _located(root: Path):
+    """Errors found while reading a bag start with the bag's path (``<bag>: <topic> at stamp ...``)."""
+    try:
+        yield
+    except BagError as exc:
+        if str(exc).startswith(str(root)):
+            raise
+        raise BagError(f"{root}: {exc}") from None
+
+
 class _Stream:
     """An iterator with a :class:`ReadReport` (final once exhausted); usable as a context manager."""
 
@@ -561,14 +583,14 @@ class _Stream:
 def _check_topics(info: BagInfo, wanted: dict) -> None:
     """``wanted``: topic -> allowed types (empty tuple: any)."""
     if not info.topics:
-        raise BagError(f"bag {info.path} has no topics (empty bag)")
+        raise BagError(f"{info.path}: no topics (empty bag)")
     for topic, allowed in wanted.items():
         if topic not in info.topics:
             have = ", ".join(f"{t.name} [{t.msgtype}]" for t in sorted(info.topics.values(), key=lambda x: x.name))
-            raise BagError(f"topic {topic!r} is not in bag {info.path}; it has: {have}")
+            raise BagError(f"{info.path}: topic {topic!r} is not in the bag; it has: {have}")
         mt = info.topics[topic].msgtype
         if allowed and mt not in allowed:
-            raise BagError(f"topic {topic!r} has type {mt}, expected {' or '.join(allowed)}")
+            raise BagError(f"{info.path}: topic {topic!r} has type {mt}, expected {' or '.join(allowed)}")
 
 
 def iter_raw(path, topics=None) -> Iterator[RawMessage]:
@@ -620,8 +642,9 @@ def iter_messages(path, topic: str) -> Iterator[tuple]:
     types = _Types()
 
     def gen():
-        for _, msgtype, t, data in _raw_stream(layout, [topic], rep, types):
-            yield t, types.deserialize(data, msgtype)
+        with _located(layout.root):
+            for _, msgtype, t, data in _raw_stream(layout, [topic], rep, types):
+                yield t, types.deserialize(data, msgtype)
         rep.finished = True
 
     return _Stream(gen(), rep)
@@ -654,11 +677,11 @@ class _SampleBuilder:
                                f"(uncalibrated camera?): {exc}") from None
             d = np.asarray(msg.d, dtype=float)
             if d.size and np.any(d != 0):
-                self._warn(f"{self.info_topic} has distortion coefficients ({msg.distortion_model}: "
+                self.warn(f"{self.info_topic} has distortion coefficients ({msg.distortion_model}: "
                            f"{np.round(d, 4).tolist()}); the images are read as they are (not rectified) while "
                            f"CameraModel is an undistorted pinhole: use a rectified topic (image_rect)")
             if int(msg.binning_x) > 1 or int(msg.binning_y) > 1:
-                self._warn(f"{self.info_topic} declares binning {msg.binning_x}x{msg.binning_y}: ignored")
+                self.warn(f"{self.info_topic} declares binning {msg.binning_x}x{msg.binning_y}: ignored")
             self._cams[key] = cam
         return cam, fid
 
@@ -670,7 +693,8 @@ class _SampleBuilder:
             raise BagError(f"{self.pose_topic} at stamp {t} ns: {exc}") from None
         return T, str(msg.header.frame_id)
 
-    def _warn(self, text: str) -> None:
+    def warn(self, text: str) -> None:
+        """Add ``text`` to the report's warnings and log it (once per distinct text)."""
         if text not in self.report.warnings:
             self.report.warnings.append(text)
             log.warning(text)
@@ -750,7 +774,7 @@ def read_samples(path, image_topic: str = "/camera/image_raw", info_topic: str =
     _check_topics(info, {image_topic: (IMAGE_TYPE, COMPRESSED_IMAGE_TYPE), info_topic: (CAMERA_INFO_TYPE,),
                          pose_topic: (POSE_TYPE,)})
     if not info.topics[image_topic].count:
-        raise BagError(f"topic {image_topic!r} of bag {info.path} has no messages")
+        raise BagError(f"{info.path}: topic {image_topic!r} has no messages")
     rep = _new_report(layout)
     rep.requested = list(topics)
     rep.expected = info.report.expected
@@ -760,21 +784,36 @@ def read_samples(path, image_topic: str = "/camera/image_raw", info_topic: str =
     types = _Types()
     index = {image_topic: 0, info_topic: 1, pose_topic: 2}
 
+    late_ns = seconds_to_ns(lateness)
+    newest = [None, None, None]
+    went_back: set = set()
+
     def gen():
-        for topic, msgtype, _, data in _raw_stream(layout, topics, rep, types):
-            msg = types.deserialize(data, msgtype)
-            t = _stamp_ns(msg.header.stamp)
-            k = index[topic]
-            item = (msgtype, msg) if k == 0 else builder.camera(msg, t) if k == 1 else builder.pose(msg, t)
-            for match in sync.add(k, t, item):
-                rep.samples += 1
-                yield builder.sample(match)
-        for match in sync.flush():
-            rep.samples += 1
-            yield builder.sample(match)
-        rep.finished = True
-        if sync.stats.dropped:
-            log.warning("%s: %d of %d images had no camera_info/pose within tolerance and were dropped",
-                        layout.root, sync.stats.dropped, sync.stats.received[0])
+        try:
+            with _located(layout.root):
+                for topic, msgtype, _, data in _raw_stream(layout, topics, rep, types):
+                    msg = types.deserialize(data, msgtype)
+                    t = _stamp_ns(msg.header.stamp)
+                    k = index[topic]
+                    if newest[k] is not None and newest[k] - t > late_ns and topic not in went_back:
+                        went_back.add(topic)
+                        builder.warn(f"{topic}: header stamps go back in time by more than the out-of-order "
+                                     f"tolerance ({lateness:g} s; first at stamp {t} ns, "
+                                     f"{(newest[k] - t) / 1e9:.3f} s back): such messages may be paired with a "
+                                     f"neighbour's partners or dropped")
+                    newest[k] = t if newest[k] is None else max(newest[k], t)
+                    item = (msgtype, msg) if k == 0 else builder.camera(msg, t) if k == 1 else builder.pose(msg, t)
+                    for match in sync.add(k, t, item):
+                        rep.samples += 1
+                        yield builder.sample(match)
+                for match in sync.flush():
+                    rep.samples += 1
+                    yield builder.sample(match)
+            rep.finished = True
+        finally:        # also when the reader stops early (closed stream): what was dropped so far
+            if sync.stats.dropped:
+                log.warning("%s: %d of %d images %shad no camera_info/pose within tolerance and were dropped",
+                            layout.root, sync.stats.dropped, sync.stats.received[0],
+                            "" if rep.finished else "read so far ")
 
     return _Stream(gen(), rep)

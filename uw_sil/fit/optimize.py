@@ -706,7 +706,8 @@ def optimize(
     target : float, optional
         Stop after the first iteration in which a value ``>= target`` was seen.
     progress : bool, optional
-        Show a tqdm progress bar on stderr (iterations; best value and evaluations in the postfix).
+        Show progress on stderr (iterations; best value and evaluations): a tqdm bar on a terminal,
+        plain lines elsewhere (:func:`uw_sil._shared.progress.progress_bar`).
     callback : callable, optional
         ``callback(iteration, best_x, best_f)`` after every iteration (``best_x`` is a copy in
         original units, NaN while nothing valid was seen). Returning a true value or raising
@@ -804,11 +805,10 @@ def optimize(
 
     bar = None
     if progress:
-        from tqdm import tqdm
+        from .._shared.progress import progress_bar
 
-        # On a terminal a live bar; in logs (CI, launch files) an update every 15 s instead of every iteration.
-        bar = tqdm(total=max_iter + 1, desc=method, unit="it", file=sys.stderr, leave=True,
-                   mininterval=0.1 if sys.stderr.isatty() else 15.0)
+        # On a terminal a live bar; in logs (CI, launch files, pipes) a plain line every few seconds.
+        bar = progress_bar(max_iter + 1, method, unit="it", file=sys.stderr)
     rec = _Recorder(objective, lo, hi, target, callback, bar)
     try:
         if method == "pso":

@@ -17,8 +17,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Iterable, Mapping, Optional
 
-__all__ = ["NodeSpec", "GraphArg", "Graph", "BACKWARD_INPUTS", "BACKWARD_ARGS", "backward_graph", "ros_args",
-           "command_line", "share_file", "failure_reason", "GRAPHS"]
+__all__ = ["NodeSpec", "GraphArg", "Graph", "BACKWARD_INPUTS", "BACKWARD_ARGS", "FORWARD_ARGS", "SIL_ARGS",
+           "backward_graph", "forward_graph", "sil_graph", "ros_args", "command_line", "share_file", "failure_reason",
+           "GRAPHS"]
 
 
 @dataclass
@@ -101,6 +102,73 @@ def backward_graph(sim_params: Optional[str] = None, bag: Optional[str] = None, 
             "bag": str(bag), "rate": float(rate), "loop": bool(loop),
             "wait_for_topics": [BACKWARD_INPUTS[0], BACKWARD_INPUTS[2]], "wait_for_nodes": ["backward_fit"],
             "delay": 0.5}))
+    return nodes
+
+
+#: sim_camera when a bag is replayed into the forward half: render every pose (a live camera keeps the
+#: default queue of 1, the newest pose, for latency).
+REPLAY_SIM_CAMERA = {"queue_size": 100}
+
+#: Topic the enhancer subscribes to once sim_camera listens for poses: a replayed bag waits for it.
+FORWARD_INPUT = "/camera/image_raw"
+
+
+def _enhancer(method: str, b_from_frame: bool, idle_exit: bool) -> NodeSpec:
+    params = {"method": method, "b_from_frame": bool(b_from_frame), "sim_node": "sim_camera"}
+    if idle_exit:
+        params["idle_timeout"] = IDLE_TIMEOUT
+    return NodeSpec("enhancer", "enhancer", parameters=params, required=idle_exit)
+
+
+def _bag_play(bag, rate, loop, wait_for_topics, wait_for_nodes=()) -> NodeSpec:
+    params = {"bag": str(bag), "rate": float(rate), "loop": bool(loop), "wait_for_topics": list(wait_for_topics),
+              "delay": 0.5}
+    if wait_for_nodes:
+        params["wait_for_nodes"] = list(wait_for_nodes)
+    return NodeSpec("bag_play", "bag_play", parameters=params)
+
+
+def forward_graph(sim_params: Optional[str] = None, bag: Optional[str] = None, rate: float = 1.0, loop: bool = False,
+                  keep_running: bool = False, method: str = "sil", b_from_frame: bool = False) -> list:
+    """sim_camera + enhancer (+ bag_play replaying a field trial when ``bag`` is given): the forward half.
+
+    ``sim_params`` is the fitted parameters file (``uw-sil fit --out fit.yaml``; default
+    ``config/sim_camera.yaml``); the enhancer follows ``sim_camera``'s parameters. With a bag (and not
+    ``keep_running`` or ``loop``) the enhancer exits ``IDLE_TIMEOUT`` s after the last frame and, being
+    ``required``, ends the graph. ``bag_play`` starts once its camera and pose publishers have matched the
+    enhancer and sim_camera (the enhancer subscribes once it has sim_camera's parameters), so no frame is
+    lost to start-up.
+    """
+    sim_params = sim_params or str(share_file("config", "sim_camera.yaml"))
+    idle_exit = bool(bag) and not keep_running and not loop
+    nodes = [NodeSpec("sim_camera", "sim_camera", param_files=[sim_params],
+                      parameters=dict(REPLAY_SIM_CAMERA) if bag else {}),
+             _enhancer(method, b_from_frame, idle_exit)]
+    if bag:
+        # without wait_for_nodes bag_play waits for a *matched* reader on each topic: the enhancer on the
+        # camera, sim_camera on the poses (both are the only readers in this graph)
+        nodes.append(_bag_play(bag, rate, loop, [FORWARD_INPUT, BACKWARD_INPUTS[2]]))
+    return nodes
+
+
+def sil_graph(sim_params: Optional[str] = None, bag: Optional[str] = None, output_yaml: str = "", frames: int = 3,
+              optimizer: str = "pso", rate: float = 1.0, loop: bool = False, max_iter: Optional[int] = None,
+              stride: Optional[int] = None, keep_running: bool = False, method: str = "sil",
+              b_from_frame: bool = False) -> list:
+    """Both halves: sim_camera + backward_fit + enhancer (+ bag_play): the fit re-parameterizes sim_camera,
+    and through its parameter events the enhancer.
+
+    With a bag the graph ends when the fit is done (as the backward graph), unless ``keep_running``; frames
+    enhanced before then use ``sim_params``. ``bag_play`` starts once both backward_fit and the enhancer
+    subscribe to the camera.
+    """
+    nodes = [n for n in backward_graph(sim_params=sim_params, bag=bag, output_yaml=output_yaml, frames=frames,
+                                       optimizer=optimizer, rate=rate, loop=loop, max_iter=max_iter, stride=stride,
+                                       keep_running=keep_running) if n.name != "bag_play"]
+    nodes.append(_enhancer(method, b_from_frame, idle_exit=False))
+    if bag:
+        nodes[0].parameters.update(REPLAY_SIM_CAMERA)
+        nodes.append(_bag_play(bag, rate, loop, [FORWARD_INPUT], ["backward_fit", "enhancer"]))
     return nodes
 
 
@@ -243,10 +311,31 @@ BACKWARD_ARGS = (
     GraphArg("keep_running", "with a bag: keep the graph running after the fit, until Ctrl-C", bool, False),
 )
 
+_ENHANCER_ARGS = (
+    GraphArg("method", "the enhancer's method: sil (the fitted model, inverted), dcp or udcp", str, "sil",
+             choices=("sil", "dcp", "udcp")),
+    GraphArg("b_from_frame", "the enhancer re-estimates the background on every frame from its water", bool, False),
+)
+
+FORWARD_ARGS = (
+    next(a for a in BACKWARD_ARGS if a.name == "bag"),
+    GraphArg("sim_params", "the fitted parameters file for sim_camera (`uw-sil fit --out fit.yaml`; default: "
+             "config/sim_camera.yaml)", path=True),
+    *_ENHANCER_ARGS,
+    *(a for a in BACKWARD_ARGS if a.name in ("rate", "loop")),
+    GraphArg("keep_running", "with a bag: keep the graph running after its last frame, until Ctrl-C", bool, False),
+)
+
+SIL_ARGS = BACKWARD_ARGS + _ENHANCER_ARGS
+
 #: The graphs by name: ``ros2 launch uw_sil <name>.launch.py`` and ``uw-sil launch <name>``.
 GRAPHS = {
     "backward": Graph("backward", "sim_camera + backward_fit (+ bag_play replaying a field trial): fit the "
                       "simulator to the first frames and re-parameterize it", BACKWARD_ARGS, backward_graph),
+    "forward": Graph("forward", "sim_camera + enhancer (+ bag_play): the real frames dehazed with the "
+                     "fitted model and the simulated depth", FORWARD_ARGS, forward_graph),
+    "sil": Graph("sil", "sim_camera + backward_fit + enhancer (+ bag_play): both halves; the fit "
+                 "re-parameterizes sim_camera and, through it, the enhancer", SIL_ARGS, sil_graph),
 }
 
 

@@ -36,14 +36,13 @@ Parameters of the effects as ROS parameters: ``<effect>.<param>`` (:func:`effect
 from __future__ import annotations
 
 import weakref
-from dataclasses import dataclass
 from typing import NamedTuple, Optional
 
 import numpy as np
 
 from .effects import EFFECTS, EFFECT_ORDER, get_effect, parse_effects
 from .effects.base import ModelTerms, effect_rng
-from .optics import FOG_MODES
+from .optics import FOG_MODES, invert_transmission
 from .params import UnderwaterParams, validate_rgb_params
 
 __all__ = ["Geometry", "ModelTerms", "UnderwaterModel", "PreparedModel", "RestoreResult",
@@ -399,14 +398,14 @@ class UnderwaterModel:
                 I = eff.invert(I, terms, v)
         b = terms.b[:, None, None]
         TD = terms.T_D
-        den = np.maximum(TD, np.float32(t0))
-        if terms.T_B is TD and terms.veil is None:
-            ip = b + (I - b) / den
-        else:
+        if terms.T_B is not TD or terms.veil is not None:
+            # Backscatter beyond the base model's b (1 - T_D) (beta_B != beta_D, the lamps' veil) is
+            # subtracted first; what remains is the base model, inverted by the one inverse of Eq. 1.
             B = b * (1 - terms.T_B)
             if terms.veil is not None:
                 B = B + terms.veil
-            ip = b + (I - B - b * TD) / den
+            I = I - (B - b * (1 - TD))
+        ip = invert_transmission(I, b, TD, t0)
         if terms.illum is not None:
             gain = np.minimum(np.float32(1.0) / np.maximum(terms.illum, np.float32(1e-12)), np.float32(max_gain))
             ip = ip * gain
