@@ -318,7 +318,8 @@ _ENHANCER_ARGS = (
 )
 
 FORWARD_ARGS = (
-    next(a for a in BACKWARD_ARGS if a.name == "bag"),
+    GraphArg("bag", "replay this field trial (rosbag2 directory, .mcap or .db3); the graph then ends after its "
+             "last frame", path=True),
     GraphArg("sim_params", "the fitted parameters file for sim_camera (`uw-sil fit --out fit.yaml`; default: "
              "config/sim_camera.yaml)", path=True),
     *_ENHANCER_ARGS,
