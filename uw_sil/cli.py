@@ -1,9 +1,14 @@
 """The ``uw-sil`` command: the core library's offline tools on ROS 2 bags.
 
     uw-sil synth --out trial.mcap [--frames N] [--seed S] [--params a_r=0.4,...] [--storage mcap|sqlite3]
-    uw-sil info trial.mcap
-    uw-sil fit --bag trial.mcap [--frames K] [--optimizer pso|cmaes] [--color-model rgb|hsv] [--channels HSV]
-               [--out fit.yaml] [--report DIR]
+                 [--image-topic T] [--compressed jpeg|png] [--pose-in topic|tf|none] [--info-topic T|none]
+                 [--camera-yaml cam.yaml] [--distortion k1,k2,p1,p2,k3]
+    uw-sil info trial.mcap [BAG SOURCE] [--check N]
+    uw-sil fit --bag trial.mcap [BAG SOURCE] [--frames K] [--optimizer pso|cmaes] [--color-model rgb|hsv]
+               [--channels HSV] [--out fit.yaml] [--report DIR]
+
+BAG SOURCE (every command reading bags): [--image-topic T] [--info-topic T | --camera-info cam.yaml]
+           [--pose-from topic:/panel/pose | tf:CAMERA_FRAME:PANEL_FRAME | markers] [--model MESH]
     uw-sil demo [--out-dir out]          # synth -> contact sheet -> fit -> report
 
 Exit codes: 0 success, 1 bad input (message on stderr), 130 interrupted (no partial outputs left).
@@ -44,6 +49,46 @@ def _parse_params(text: str) -> UnderwaterParams:
     return UnderwaterParams.from_dict(d)
 
 
+def _add_bag_source_args(parser, model: bool = True) -> None:
+    """Options saying how to read a (field) bag: image topic, intrinsics, pose source (and panel model).
+
+    Every command reading bags takes them (``info``, ``fit``, ...); :func:`_bag_source` turns the parsed
+    arguments into a :class:`uw_sil.bags.source.BagSource`. Defaults (None here) are the standard topics.
+    """
+    g = parser.add_argument_group("which data of the bag (field trials)")
+    g.add_argument("--image-topic", default=None,
+                   help="sensor_msgs/Image or CompressedImage topic (default /camera/image_raw)")
+    g.add_argument("--info-topic", default=None, help="sensor_msgs/CameraInfo topic (default /camera/camera_info)")
+    g.add_argument("--camera-info", metavar="CAMERA_YAML", default=None,
+                   help="camera intrinsics from a ROS camera_calibration YAML file instead of the info topic; "
+                        "plumb_bob distortion is removed from the frames (rectified with OpenCV)")
+    g.add_argument("--pose-from", default=None, metavar="SOURCE",
+                   help="panel pose: topic:/panel/pose (default), tf:CAMERA_FRAME:PANEL_FRAME (from /tf and "
+                        "/tf_static, interpolated to each image) or markers (the panel's ArUco markers)")
+    g.add_argument("--tf-tolerance", type=float, default=None, metavar="S",
+                   help="tf lookups may lie this far (s) outside the recorded transforms (default 0.1)")
+    if model:
+        g.add_argument("--model", default=None, metavar="MESH",
+                       help="panel mesh (default: the shipped intervention panel); for --pose-from markers "
+                            "its markers are declared in MESH's .markers.yaml next to it")
+
+
+_BAG_SOURCE_ARGS = ("image_topic", "info_topic", "camera_info", "pose_from", "tf_tolerance")
+
+
+def _bag_source(args):
+    """The :class:`uw_sil.bags.source.BagSource` of options added by :func:`_add_bag_source_args`."""
+    from .bags.source import DEFAULT_IMAGE_TOPIC, DEFAULT_INFO_TOPIC, DEFAULT_POSE_TOPIC, BagSource, PoseFrom
+
+    kw = dict(image_topic=args.image_topic or DEFAULT_IMAGE_TOPIC, info_topic=args.info_topic or DEFAULT_INFO_TOPIC,
+              camera_info=args.camera_info,
+              pose_from=PoseFrom.parse(args.pose_from or f"topic:{DEFAULT_POSE_TOPIC}"),
+              model=getattr(args, "model", None))
+    if args.tf_tolerance is not None:
+        kw["tf_extrapolation_s"] = args.tf_tolerance
+    return BagSource(**kw)
+
+
 def _progress_bar(total: int, desc: str):
     from tqdm import tqdm
 
@@ -67,27 +112,50 @@ def cmd_synth(args) -> int:
     kw = {} if params is None else {"params": params}
     # The bag writer removes a partial bag when rendering fails or is interrupted; the truth sidecar
     # is written only after the bag is complete.
+    fmt = args.compressed or "raw"
+    image_topic = args.image_topic or ("/camera/image_raw" + ("/compressed" if fmt != "raw" else ""))
+    info_topic = None if (args.info_topic or "").lower() == "none" else (args.info_topic or "/camera/camera_info")
+    distortion = None
+    if args.distortion:
+        distortion = [float(v) for v in args.distortion.replace(",", " ").split()]
+        if len(distortion) != 5:
+            raise ValueError(f"--distortion needs 5 plumb_bob coefficients k1,k2,p1,p2,k3, got {args.distortion!r}")
+    if info_topic is None and not args.camera_yaml:
+        raise ValueError("--info-topic none writes no camera_info: also pass --camera-yaml FILE for the intrinsics")
     truth = synthesize_trial(out, n_frames=args.frames, seed=args.seed, camera=camera, storage=args.storage,
                              fog=args.fog, start_m=args.start, end_m=args.end,
-                             progress=_progress_bar(args.frames, "render"), overwrite=args.force, **kw)
-    print(f"wrote bag {truth['bag']} ({args.frames} frames) and {truth_path(out)}")
+                             progress=_progress_bar(args.frames, "render"), overwrite=args.force,
+                             image_topic=image_topic, info_topic=info_topic, image_format=fmt,
+                             jpeg_quality=args.jpeg_quality, pose_in=args.pose_in, distortion=distortion,
+                             camera_yaml=args.camera_yaml, **kw)
+    print(f"wrote bag {truth['bag']} ({args.frames} frames, {image_topic}, pose in {args.pose_in}) and "
+          f"{truth_path(out)}" + (f" and {args.camera_yaml}" if args.camera_yaml else ""))
     if args.contact_sheet:
-        _contact_sheet(out, Path(args.contact_sheet))
+        from .bags.source import BagSource
+
+        pose_from = {"topic": f"topic:{truth['pose_topic']}", "none": "markers",
+                     "tf": f"tf:{truth['camera_frame']}:{truth['panel_frame']}"}[args.pose_in]
+        source = BagSource(image_topic=image_topic, info_topic=info_topic, camera_info=args.camera_yaml,
+                           pose_from=pose_from)
+        _contact_sheet(out, Path(args.contact_sheet), source=source)
         print(f"wrote {args.contact_sheet}")
     return 0
 
 
-def _contact_sheet(bag: Path, png: Path, rows: int = 4):
-    from .bags import open_bag, read_samples
+def _contact_sheet(bag: Path, png: Path, rows: int = 4, source=None):
+    from .bags import open_bag
+    from .bags.source import BagSource
     from .sim.render import Renderer
     from .viz import contact_sheet, save_figure
 
-    n = open_bag(bag).topics["/camera/image_raw"].count
+    source = source or BagSource()
+    n = open_bag(bag).topics[source.image_topic].count
     pick = set(np.unique(np.linspace(0, n - 1, min(rows, n)).round().astype(int)).tolist())
     items = []
     renderer = None
     try:
-        for i, s in enumerate(read_samples(bag)):      # streamed: only the picked frames are kept
+        for s in source.read(bag):      # streamed: only the picked frames are kept
+            i = s.index
             if i not in pick:
                 continue
             renderer = renderer or Renderer(camera=s.camera)
@@ -101,9 +169,37 @@ def _contact_sheet(bag: Path, png: Path, rows: int = 4):
 
 def cmd_info(args) -> int:
     from .bags import open_bag
+    from .bags.source import describe_sources
 
     info = open_bag(args.bag)
     print(info.describe() if hasattr(info, "describe") else info)
+    print(describe_sources(args.bag))
+    if any(getattr(args, k) is not None for k in _BAG_SOURCE_ARGS) or args.check:
+        source = _bag_source(args)
+        n = max(1, args.check or 5)
+        stream = source.read(args.bag)
+        got = []
+        try:
+            for s in stream:
+                got.append(s)
+                if len(got) >= n:
+                    break
+        finally:
+            stream.close()
+        rep = stream.report
+        print(f"reading {source.describe()}: {len(got)} frame(s) with a pose in the first "
+              f"{len(got) + len(rep.skipped)} image(s)")
+        for s in got:
+            extra = ""
+            if s.pose_info and s.pose_info.get("source") == "markers":
+                extra = (f", markers {s.pose_info['ids']}, reprojection {s.pose_info['reprojection_rms_px']:.2f} px RMS"
+                         f", refined by {s.pose_info['refinement']}")
+            print(f"  image #{s.index}: {s.camera.width}x{s.camera.height}, panel at "
+                  f"{np.linalg.norm(s.pose[:3, 3]):.2f} m{extra}")
+        for i, _, why in rep.skipped:
+            print(f"  image #{i}: no pose: {why}")
+        for w in rep.warnings + rep.notes:
+            print(f"  note: {w}")
     return 0
 
 
@@ -131,6 +227,7 @@ def cmd_fit(args) -> int:
     from .fit.report import write_report
 
     methods = [args.optimizer] + ([m for m in ("pso", "cmaes") if m != args.optimizer] if args.compare else [])
+    source = _bag_source(args)
     fits = []
     for m in methods:
         print(f"fitting with {m} ({args.color_model}, channels {args.channels}) ...", file=sys.stderr)
@@ -138,14 +235,24 @@ def cmd_fit(args) -> int:
         if args.max_iter is not None:
             opts["max_iter"] = args.max_iter
         fits.append(fit_bag(args.bag, k=args.frames, stride=args.stride, min_coverage=args.min_coverage,
-                            method=m, color_model=args.color_model, channels=args.channels, fog=args.fog,
+                            source=source, method=m, color_model=args.color_model, channels=args.channels, fog=args.fog,
                             hist_pixels=args.hist_pixels, sim_noise=_sim_noise(args.sim_noise),
                             x0=None if args.start == "centre" else args.start, callback=_raise_if_interrupted,
                             seed=args.seed, progress=True, **opts))
     _raise_if_interrupted()
     fit = fits[0]
+    for i, reason in fit.images_without_pose:
+        print(f"image #{i} has no pose: {reason}", file=sys.stderr)
     for i, reason in fit.skipped:
         print(f"skipped frame #{i}: {reason}", file=sys.stderr)
+    for f in fit.frames:
+        p = f.pose_info or {}
+        extra = ""
+        if p.get("source") == "markers":
+            extra = (f", pose from markers {p['ids']}: reprojection {p['reprojection_rms_px']:.2f} px RMS "
+                     f"(max {p['reprojection_max_px']:.2f}), refined by {p['refinement']}")
+        print(f"fit frame #{f.index} (image #{f.image_index}, {f.range_median:.2f} m, panel "
+              f"{100 * f.coverage:.0f}%){extra}", file=sys.stderr)
     comment = (f"uw_sil backward fit of {args.bag}: {fit.optim.method}, theta {fit.theta_start:.4f} -> "
                f"{fit.theta_best:.4f}, {fit.optim.n_evals} evaluations, {fit.wall_time_s:.1f} s")
     write_params_yaml(args.out, fit.params, node_name=args.node_name, fog=args.fog, comment=comment,
@@ -208,14 +315,33 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--end", type=float, default=1.2, help="range at the end of the approach [m]")
     s.add_argument("--contact-sheet", help="also write a PNG contact sheet here")
     s.add_argument("--force", action="store_true", help="overwrite an existing bag")
+    fs = s.add_argument_group("field-style bags")
+    fs.add_argument("--image-topic", default=None,
+                    help="image topic (default /camera/image_raw, with --compressed /camera/image_raw/compressed)")
+    fs.add_argument("--compressed", choices=["jpeg", "png"], default=None,
+                    help="write sensor_msgs/CompressedImage instead of raw rgb8 images")
+    fs.add_argument("--jpeg-quality", type=int, default=95)
+    fs.add_argument("--info-topic", default=None,
+                    help="camera_info topic (default /camera/camera_info); 'none': no camera_info (needs --camera-yaml)")
+    fs.add_argument("--camera-yaml", default=None, metavar="FILE",
+                    help="also write the camera's calibration as a ROS camera_calibration YAML file")
+    fs.add_argument("--distortion", default=None, metavar="K1,K2,P1,P2,K3",
+                    help="plumb_bob lens distortion of the synthetic camera (frames are distorted)")
+    fs.add_argument("--pose-in", choices=["topic", "tf", "none"], default="topic",
+                    help="record the panel pose as /panel/pose (default), only as a navigation tf tree "
+                         "(map->odom->base_link->camera_optical_frame, map->panel), or not at all (markers)")
     s.set_defaults(func=cmd_synth)
 
-    i = sub.add_parser("info", help="topics, counts and losses of a bag")
+    i = sub.add_parser("info", help="topics, counts and losses of a bag; image topics and pose sources")
     i.add_argument("bag")
+    _add_bag_source_args(i)
+    i.add_argument("--check", type=int, default=0, metavar="N",
+                   help="read the first N frames with the given source and say which have a pose")
     i.set_defaults(func=cmd_info)
 
     f = sub.add_parser("fit", help="backward optimization: fit the 7 parameters to a recording")
     f.add_argument("--bag", required=True)
+    _add_bag_source_args(f)
     f.add_argument("--frames", type=int, default=3, help="K: frames to fit (default 3)")
     f.add_argument("--stride", type=int, default=1, help="use every n-th frame (more ranges in the K frames)")
     f.add_argument("--min-coverage", type=float, default=0.02, help="skip frames where the panel covers less")

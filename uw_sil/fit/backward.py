@@ -44,6 +44,8 @@ class FitFrame:
     image: np.ndarray       # (H, W, 3) uint8 RGB, the real frame
     render: object          # uw_sil.sim.render.RenderResult
     coverage: float         # fraction of pixels on the panel
+    image_index: int = -1   # position in the bag's image topic (Sample.index)
+    pose_info: dict = None  # how the pose was found (Sample.pose_info: source, marker reprojection error...)
 
     @property
     def range_median(self) -> float:
@@ -119,7 +121,8 @@ class FrameSelector:
         if cov < self.min_coverage:
             self.skipped.append((idx, f"panel covers {100 * cov:.1f}% of the image (< {100 * self.min_coverage:.1f}%)"))
             return False
-        self.frames.append(FitFrame(idx, int(sample.stamp_ns), np.ascontiguousarray(sample.image), rr, cov))
+        self.frames.append(FitFrame(idx, int(sample.stamp_ns), np.ascontiguousarray(sample.image), rr, cov,
+                                    int(getattr(sample, "index", -1)), getattr(sample, "pose_info", None)))
         return True
 
     def result(self) -> FrameSelection:
@@ -296,6 +299,8 @@ class FitResult:
     wall_time_s: float
     hist_pixels: str = "split"
     noise_sigma: list = None
+    images_without_pose: list = field(default_factory=list)   # (image index, reason) from the bag reader
+    pose_source: str = ""
 
     @property
     def noise_level(self) -> float:
@@ -327,8 +332,11 @@ class FitResult:
             "noise_sigma_per_frame": [[float(v) for v in s] for s in (self.noise_sigma or [])],
             "fog": self.fog,
             "frames": [{"index": f.index, "stamp_ns": f.stamp_ns, "coverage": f.coverage,
-                        "range_median_m": f.range_median} for f in self.frames],
+                        "range_median_m": f.range_median, "image_index": f.image_index,
+                        **({"pose": f.pose_info} if f.pose_info else {})} for f in self.frames],
             "skipped_frames": [{"index": i, "reason": r} for i, r in self.skipped],
+            "pose_source": self.pose_source,
+            "images_without_pose": [{"image_index": i, "reason": r} for i, r in self.images_without_pose],
         }
 
 
@@ -460,15 +468,28 @@ def water_start(frames: list, space: ParamSpace) -> np.ndarray:
 
 
 def fit_bag(bag, k: int = 3, stride: int = 1, min_coverage: float = 0.02, max_scan: int = 200, model=None,
-            **fit_options) -> FitResult:
-    """Read a recording, select frames, render them and fit (see :func:`select_frames`, :func:`fit_frames`)."""
-    from ..bags import read_samples
+            source=None, **fit_options) -> FitResult:
+    """Read a recording, select frames, render them and fit (see :func:`select_frames`, :func:`fit_frames`).
+
+    ``source`` (:class:`uw_sil.bags.source.BagSource`) says which topics, calibration and pose source to
+    read; default the standard topics (``/camera/image_raw``, ``/camera/camera_info``, ``/panel/pose``).
+    Its ``model`` (the panel mesh) is used when ``model`` is not given.
+    """
+    from ..bags.source import BagSource
     from ..sim.render import Renderer
 
-    with Renderer(model) as renderer:
-        sel = select_frames(read_samples(bag), renderer, k=k, min_coverage=min_coverage, max_scan=max_scan,
-                            stride=stride)
-    return fit_frames(sel.frames, skipped=sel.skipped, **fit_options)
+    source = BagSource(model=model) if source is None else source
+    model = source.model if model is None else model
+    samples = source.read(bag)
+    try:
+        with Renderer(model) as renderer:
+            sel = select_frames(samples, renderer, k=k, min_coverage=min_coverage, max_scan=max_scan, stride=stride)
+    finally:
+        samples.close()
+    res = fit_frames(sel.frames, skipped=sel.skipped, **fit_options)
+    res.images_without_pose = [(i, why) for i, _, why in samples.report.skipped]
+    res.pose_source = str(source.pose_from)
+    return res
 
 
 def write_json_atomic(path, data) -> Path:
