@@ -217,6 +217,30 @@ def test_marker_pose_through_the_underwater_model():
     assert away.T is None and "no marker of the layout" in away.reason
 
 
+def test_face_alignment_refines_a_pose_that_is_centimetres_off():
+    """A pose 1.5 cm / 0.7 deg off (navigation-like) is brought to sub-millimetre by aligning the rendered
+    face with the frame."""
+    from uw_sil.bags.synth import DEFAULT_TRUTH, SensorNoise, add_sensor_noise
+    from uw_sil.sim.align import FaceAligner
+    from uw_sil.sim.scene import facing_pose
+    from uw_sil.sim.simcam import SimCamera
+
+    rng = np.random.default_rng(5)
+    T = facing_pose(1.5, x=0.05, yaw=0.2, pitch=-0.05)
+    off = pose_to_matrix((0.009, -0.009, 0.009), Rotation.from_euler("xyz", [0.4, -0.4, 0.4], degrees=True).as_quat())
+    with SimCamera(DEFAULT_TRUTH, camera=CAM) as sim, FaceAligner() as al:
+        img = add_sensor_noise(sim.render(T).image, SensorNoise(), rng)
+        T0 = off @ T
+        t0, r0 = pose_error(T0, T)
+        res = al.refine(img, CAM, T0, levels=(2, 1, 1))
+        assert res.T is not None and res.ecc > 0.9, res.reason
+        t1, r1 = pose_error(res.T, T)
+        assert t1 < 1.0 and r1 < 0.1 and t0 > 10 * t1, (t0, r0, t1, r1)
+        # a pose whose panel is out of view cannot be aligned: refused with the reason
+        away = al.refine(img, CAM, facing_pose(1.5, x=5.0), levels=(1,))
+    assert away.T is None and "face covers" in away.reason
+
+
 # ------------------------------------------------------------------------------------------------ synthetic field bags
 
 
@@ -301,6 +325,10 @@ def test_info_lists_image_topics_and_pose_sources(field_bags, capsys):
                  "--pose-from", "markers", "--check", "2"]) == 0
     out = capsys.readouterr().out
     assert "pose sources (--pose-from):" in out and "refined by ecc" in out
+    assert main(["info", str(bag), "--image-topic", FIELD_TOPIC, "--camera-info", str(d / "cam.yaml"),
+                 "--pose-from", "tf:camera_optical_frame:panel", "--refine-pose", "ecc", "--check", "1"]) == 0
+    out = capsys.readouterr().out
+    assert "image #0: 320x240, panel at" in out and "refined by ECC: moved" in out
 
 
 def test_pose_from_parsing():
@@ -412,3 +440,47 @@ def test_markers_with_unexpected_ids(field_bags, tmp_path, capsys):
                                        str(d / "cam.yaml"), "--pose-from", "markers", "--model",
                                        str(tmp_path / "my_panel.glb")])
     assert "has no marker layout" in line and "my_panel.markers.yaml" in line
+
+
+# ------------------------------------------------------------------------------------------------ the fit, end to end
+
+
+def _recovered(fit_yaml, truth):
+    got = yaml.safe_load(fit_yaml.read_text())["/**"]["ros__parameters"]
+    want = truth["params"]
+    rel_a = [abs(got[k] - want[k]) / want[k] for k in ("a_r", "a_g", "a_b")]
+    abs_b = [abs(got[k] - want[k]) for k in ("b_r", "b_g", "b_b")]
+    rel_rho = abs(got["rho_f"] - want["rho_f"]) / want["rho_f"]
+    return max(rel_a) <= 0.05 and max(abs_b) <= 0.01 and rel_rho <= 0.10, (rel_a, abs_b, rel_rho)
+
+
+@pytest.mark.parametrize("pose_in, pose_from", [("none", "markers"), ("tf", "tf:camera_optical_frame:panel")])
+def test_fit_field_bag_recovers_the_parameters(tmp_path, capsys, pose_in, pose_from):
+    """`uw-sil fit --bag field.mcap --image-topic /rov/front_cam/image_raw/compressed --camera-info cam.yaml
+    --pose-from markers|tf:...` on a bag without pose topic and camera_info (PNG) recovers the parameters
+    within the recovery tolerances (a 5 %, b 0.01, fog 10 %).
+    Small: 320x240 with a 40 degree lens (markers readable at 4 m), K = 2 frames at 4.0 and 1.6 m."""
+    import json
+
+    bag, cam_yaml = tmp_path / "field.mcap", tmp_path / "cam.yaml"
+    synth = ["synth", "--out", str(bag), "--frames", "6", "--width", "320", "--height", "240", "--hfov", "40",
+             "--end", "1.6", "--image-topic", FIELD_TOPIC, "--compressed", "png", "--pose-in", pose_in,
+             "--info-topic", "none", "--camera-yaml", str(cam_yaml)]
+    assert main(synth) == 0
+    topics = set(open_bag(bag).topics)
+    assert "/panel/pose" not in topics and not any("camera_info" in t for t in topics)
+    out = tmp_path / "fit.yaml"
+    assert main(["fit", "--bag", str(bag), "--image-topic", FIELD_TOPIC, "--camera-info", str(cam_yaml),
+                 "--pose-from", pose_from, "--optimizer", "cmaes", "--frames", "2", "--stride", "5",
+                 "--max-iter", "25", "--out", str(out)]) == 0
+    truth = json.loads((tmp_path / "field.truth.json").read_text())
+    ok, detail = _recovered(out, truth)
+    assert ok, detail
+    summary = json.loads((tmp_path / "fit.json").read_text())
+    assert summary["pose_source"] == pose_from
+    assert [f["image_index"] for f in summary["frames"]] == [0, 5]
+    err = capsys.readouterr().err
+    if pose_in == "none":
+        for f in summary["frames"]:
+            assert f["pose"]["source"] == "markers" and f["pose"]["reprojection_rms_px"] < 1.5
+        assert "pose from markers" in err and "px RMS" in err

@@ -215,19 +215,25 @@ class CameraCalibration:
                                       (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-10))
         return out.reshape(-1, 2)
 
-    def distortion_maps(self, pinhole: CameraModel) -> tuple[np.ndarray, np.ndarray]:
+    def distortion_maps(self, pinhole: CameraModel, supersample: int = 1) -> tuple[np.ndarray, np.ndarray]:
         """Maps that make a raw (distorted) image from an ideal pinhole image: ``cv2.remap(src, *maps)``.
 
         ``pinhole`` is the camera of the source image (it must see everything the raw camera sees, so
-        usually wider than ``K`` for barrel distortion). Used to synthesize distorted test frames.
+        usually wider than ``K`` for barrel distortion). With ``supersample`` = s the maps sample an s
+        times larger raw grid (then reduce it by s with area averaging: pixels integrate light). Used to
+        synthesize distorted test frames.
         """
         import cv2
 
-        u, v = np.meshgrid(np.arange(self.width, dtype=np.float64), np.arange(self.height, dtype=np.float64))
+        s = int(supersample)
+        if s < 1:
+            raise ValueError(f"supersample must be >= 1, got {supersample}")
+        u, v = np.meshgrid((np.arange(self.width * s, dtype=np.float64) + 0.5) / s - 0.5,
+                           (np.arange(self.height * s, dtype=np.float64) + 0.5) / s - 0.5)
         pts = np.stack([u.ravel(), v.ravel()], axis=1)[:, None, :]
         und = cv2.undistortPointsIter(pts, self.K, self._cv_d(self.D), None, pinhole.K,
                                       (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-10))
-        und = und.reshape(self.height, self.width, 2).astype(np.float32)
+        und = und.reshape(self.height * s, self.width * s, 2).astype(np.float32)
         return und[..., 0], und[..., 1]
 
     def to_yaml_text(self) -> str:
@@ -243,7 +249,8 @@ class CameraCalibration:
 
 
 class Rectifier:
-    """Rectify raw frames of one calibration (``cv2.initUndistortRectifyMap`` once, ``cv2.remap`` per frame).
+    """Rectify raw frames of one calibration (``cv2.initUndistortRectifyMap`` once, bicubic ``cv2.remap``
+    per frame).
 
     Pixels of the rectified image that fall outside the raw image (a projection ``P`` computed with
     ``alpha > 0``) replicate the border; :attr:`outside_fraction` says how many there are.
@@ -265,7 +272,10 @@ class Rectifier:
 
         h, w = image.shape[:2]
         self.calib.check_image_size(w, h, "image")
-        return cv2.remap(image, self._m1, self._m2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        # bicubic: bilinear resampling visibly smooths edges and noise, which the fit then explains with
+        # fog (theta at the true parameters on a synthetic distorted trial: 0.927 bilinear, 0.940 bicubic,
+        # 0.963 without distortion)
+        return cv2.remap(image, self._m1, self._m2, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
 
 
 def load_camera_yaml(path) -> CameraCalibration:

@@ -664,7 +664,7 @@ class _SampleBuilder:
     """Turns paired messages into :class:`Sample` objects: decode, calibrate (rectify), pose."""
 
     def __init__(self, image_topic, info_topic, pose_from, calibration, check_frames: bool, report: ReadReport,
-                 tf_buffer=None, markers=None):
+                 tf_buffer=None, markers=None, aligner=None):
         self.image_topic, self.info_topic = image_topic, info_topic
         self.pose_from = pose_from
         self.pose_topic = pose_from.topic if pose_from.kind == "topic" else None
@@ -673,6 +673,7 @@ class _SampleBuilder:
         self.report = report
         self.tf = tf_buffer
         self.markers = markers
+        self.aligner = aligner
         self._calibs: dict = {}
         self._rectifiers: dict = {}
         self.marker_poses = 0
@@ -729,6 +730,26 @@ class _SampleBuilder:
                 self._warn(f"rectified frames have {100 * r.outside_fraction:.1f}% of their pixels outside the raw "
                            f"image (P computed with alpha > 0): those repeat the border")
         return r(img)
+
+    #: Largest corrections accepted from the face alignment of a topic/tf pose (beyond: a false optimum).
+    MAX_CORRECTION_DEG = 5.0
+    MAX_CORRECTION_REL = 0.1
+
+    def _refine(self, img, cam, T, info):
+        """Refine a recorded pose by aligning the rendered panel face with the frame (``refine_pose='ecc'``)."""
+        from scipy.spatial.transform import Rotation
+
+        al = self.aligner.refine(img, cam, T, levels=(2, 1, 1))
+        if al.T is None:
+            return T, {**info, "refinement": f"none (ECC refinement refused: {al.reason})"}
+        dt = float(np.linalg.norm(al.T[:3, 3] - T[:3, 3]))
+        da = float(np.degrees(Rotation.from_matrix(T[:3, :3].T @ al.T[:3, :3]).magnitude()))
+        rng = float(np.linalg.norm(T[:3, 3]))
+        if da > self.MAX_CORRECTION_DEG or dt > self.MAX_CORRECTION_REL * rng:
+            return T, {**info, "refinement": f"none (ECC refinement refused: it moved the pose by {1000 * dt:.0f} mm "
+                                             f"and {da:.1f} deg, more than {self.MAX_CORRECTION_DEG:g} deg or "
+                                             f"{100 * self.MAX_CORRECTION_REL:g}% of the range)"}
+        return al.T, {**info, "refinement": "ecc", "ecc": al.ecc, "correction_mm": 1000 * dt, "correction_deg": da}
 
     def sample(self, index: int, t: int, image_item, info_item, pose_item):
         """A Sample, or (None, reason) for a frame without a pose."""
@@ -799,6 +820,8 @@ class _SampleBuilder:
             self.marker_poses += 1
             T = mp.T
             info = mp.as_dict()
+        if self.aligner is not None and kind != "markers":
+            T, info = self._refine(img, cam, T, info)
         return Sample(t, img, cam, T.copy(), frame or cam.frame_id, index=index, pose_info=info), None
 
 
@@ -806,7 +829,7 @@ def read_samples(path, image_topic: str = "/camera/image_raw", info_topic: str |
                  pose_topic: str | None = "/panel/pose", max_dt: float = 0.05, info_max_dt: float | None = 1.0,
                  lateness: float = 0.1, queue_size: int = 64, check_frames: bool = True, *, calibration=None,
                  pose_from=None, model=None, marker_layout=None, tf_extrapolation: float = 0.1,
-                 tf_max_gap: float = 1.0) -> Iterator[Sample]:
+                 tf_max_gap: float = 1.0, refine_pose: str = "none") -> Iterator[Sample]:
     """Time-synchronized samples (image, intrinsics, panel pose) of a bag, read lazily.
 
     Parameters
@@ -847,6 +870,11 @@ def read_samples(path, image_topic: str = "/camera/image_raw", info_topic: str |
     tf_extrapolation, tf_max_gap : float
         Seconds a tf lookup may lie outside an edge's recording, and the longest recording gap
         interpolated across (see :class:`~uw_sil.bags.tf.TransformBuffer`).
+    refine_pose : {'none', 'ecc'}
+        ``'ecc'``: refine topic and tf poses by aligning the rendered panel face with each frame
+        (:class:`uw_sil.sim.align.FaceAligner`; converges from errors up to ~2-3 cm and ~1.5 deg,
+        corrections above 5 deg or 10 % of the range are refused and the recorded pose kept, as
+        ``Sample.pose_info['refinement']`` says). Marker poses are always refined this way.
 
     Returns
     -------
@@ -868,6 +896,8 @@ def read_samples(path, image_topic: str = "/camera/image_raw", info_topic: str |
     """
     from .source import PoseFrom
 
+    if refine_pose not in ("none", "ecc"):
+        raise ValueError(f"refine_pose must be 'none' or 'ecc', got {refine_pose!r}")
     pf = PoseFrom("topic", topic=pose_topic) if pose_from is None else PoseFrom.parse(pose_from)
     if pf.kind == "topic":
         pose_topic = pf.topic
@@ -918,11 +948,16 @@ def read_samples(path, image_topic: str = "/camera/image_raw", info_topic: str |
 
     def gen():
         nonlocal markers
+        aligner = None
         if pf.kind == "markers":
             from ..sim.markers import MarkerPoseEstimator
 
             markers = MarkerPoseEstimator(marker_layout, model=model)
-        builder = _SampleBuilder(*builder_args, tf_buffer=tf_buffer, markers=markers)
+        elif refine_pose == "ecc":
+            from ..sim.align import FaceAligner
+
+            aligner = FaceAligner(model)
+        builder = _SampleBuilder(*builder_args, tf_buffer=tf_buffer, markers=markers, aligner=aligner)
         n_img = 0
 
         def emit(match_stamp, items):
@@ -965,8 +1000,9 @@ def read_samples(path, image_topic: str = "/camera/image_raw", info_topic: str |
                     if s is not None:
                         yield s
         finally:
-            if markers is not None:
-                markers.close()
+            for closable in (markers, aligner):
+                if closable is not None:
+                    closable.close()
         rep.finished = True
         if sync is not None and sync.stats.dropped:
             log.warning("%s: %d of %d images had no camera_info/pose within tolerance and were dropped",

@@ -101,6 +101,9 @@ class BagSource:
         Largest |pose stamp - image stamp| (s) for ``topic:`` poses.
     check_frames : bool
         Require camera_info and pose ``header.frame_id`` to equal the image's.
+    refine_pose : {'none', 'ecc'}
+        Refine topic / tf poses by aligning the rendered panel face with each frame (see
+        :func:`uw_sil.bags.reader.read_samples`); marker poses always are.
     """
 
     image_topic: str = DEFAULT_IMAGE_TOPIC
@@ -111,6 +114,7 @@ class BagSource:
     tf_extrapolation_s: float = 0.1
     max_dt: float = 0.05
     check_frames: bool = True
+    refine_pose: str = "none"
 
     def __post_init__(self):
         object.__setattr__(self, "pose_from", PoseFrom.parse(self.pose_from))
@@ -137,14 +141,15 @@ class BagSource:
                     info_topic=None if self.camera_info is not None else self.info_topic,
                     pose_topic=pf.topic if pf.kind == "topic" else None, pose_from=pf,
                     calibration=self.calibration(), model=self.model, tf_extrapolation=self.tf_extrapolation_s,
-                    max_dt=self.max_dt, check_frames=self.check_frames)
+                    max_dt=self.max_dt, check_frames=self.check_frames, refine_pose=self.refine_pose)
         opts.update(kw)
         return read_samples(bag, **opts)
 
     def describe(self) -> str:
         """One line: what is read from where."""
         cam = f"camera_info file {self.camera_info}" if self.camera_info is not None else f"{self.info_topic}"
-        return f"images {self.image_topic}, intrinsics {cam}, pose {self.pose_from}"
+        refine = ", refined by ECC face alignment" if self.refine_pose == "ecc" and self.pose_from.kind != "markers" else ""
+        return f"images {self.image_topic}, intrinsics {cam}, pose {self.pose_from}{refine}"
 
 
 def _first_message(bag, topic):

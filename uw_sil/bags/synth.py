@@ -162,7 +162,7 @@ def synthesize_trial(out, n_frames: int = 20, seed: int = 0, params: UnderwaterP
                      progress: Optional[Callable[[int, int], None]] = None, image_topic: str = "/camera/image_raw",
                      info_topic: Optional[str] = "/camera/camera_info", pose_topic: str = "/panel/pose",
                      image_format: str = "raw", jpeg_quality: int = 95, pose_in: str = "topic",
-                     distortion=None, camera_yaml=None, panel_frame: str = "panel", tf_rate_factor: int = 4) -> dict:
+                     distortion=None, camera_yaml=None, panel_frame: str = "panel", tf_rate_factor: int = 10) -> dict:
     """Render an approach, degrade it with ``params``, add noise, and write a ROS 2 bag plus truth sidecar.
 
     Parameters
@@ -214,10 +214,13 @@ def synthesize_trial(out, n_frames: int = 20, seed: int = 0, params: UnderwaterP
     poses = [path(k / max(1, n_frames - 1)) for k in range(n_frames)]
     t0_ns = 1_700_000_000_000_000_000 + int(seed) * 1_000_000_000
     dt_ns = int(round(1e9 / rate_hz))
-    render_cam, maps = camera, None
+    render_cam, maps, ss = camera, None, 2
     if calib.has_distortion:
-        render_cam = _covering_pinhole(calib)
-        maps = calib.distortion_maps(render_cam)
+        # the lens: a pinhole render at twice the resolution, warped onto a twice finer raw grid and
+        # area-averaged (a pixel integrates the light falling on it)
+        cover = _covering_pinhole(calib)
+        render_cam = cover.scaled(ss)
+        maps = calib.distortion_maps(render_cam, supersample=ss)
 
     def samples() -> Iterator:
         import cv2
@@ -231,6 +234,7 @@ def synthesize_trial(out, n_frames: int = 20, seed: int = 0, params: UnderwaterP
                 if maps is not None:
                     img = cv2.remap(np.ascontiguousarray(img), maps[0], maps[1], cv2.INTER_LINEAR,
                                     borderMode=cv2.BORDER_REPLICATE)
+                    img = cv2.resize(img, (camera.width, camera.height), interpolation=cv2.INTER_AREA)
                 yield Sample(stamp_ns=t0_ns + k * dt_ns, image=add_sensor_noise(img, noise, rng), camera=camera,
                              pose=T, frame_id=camera.frame_id)
                 if progress:

@@ -43,6 +43,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from .align import FaceAligner
 from .camera import CameraModel
 from .transforms import pose_to_matrix
 
@@ -232,29 +233,6 @@ def _f(x: float):
     return float(x) if math.isfinite(x) else None
 
 
-def _plane_homography(K: np.ndarray, T: np.ndarray, T_panel_plane: np.ndarray) -> np.ndarray:
-    """Homography from the plane's (x, y) coordinates to pixels: ``K [r1 r2 t]`` of ``T @ T_panel_plane``."""
-    M = T @ T_panel_plane
-    return K @ np.column_stack([M[:3, 0], M[:3, 1], M[:3, 3]])
-
-
-def _pose_from_homography(K: np.ndarray, H: np.ndarray, T_panel_plane: np.ndarray) -> np.ndarray | None:
-    """``T_cam_panel`` from a plane-to-image homography (Zhang 2000, Sec. 3.1), rotation made orthonormal."""
-    M = np.linalg.solve(K, H)
-    n1, n2 = np.linalg.norm(M[:, 0]), np.linalg.norm(M[:, 1])
-    if not (n1 > 0 and n2 > 0 and np.isfinite(M).all()):
-        return None
-    lam = 2.0 / (n1 + n2)
-    if M[2, 2] * lam < 0:      # the plane origin is in front of the camera
-        lam = -lam
-    r1, r2, t = lam * M[:, 0], lam * M[:, 1], lam * M[:, 2]
-    U, _, Vt = np.linalg.svd(np.column_stack([r1, r2, np.cross(r1, r2)]))
-    R = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
-    T_cam_plane = np.eye(4)
-    T_cam_plane[:3, :3], T_cam_plane[:3, 3] = R, t
-    return T_cam_plane @ np.linalg.inv(T_panel_plane)
-
-
 class MarkerPoseEstimator:
     """Panel pose ``T_cam_panel`` from the ArUco markers of a :class:`MarkerLayout`.
 
@@ -299,6 +277,8 @@ class MarkerPoseEstimator:
     .. [4] G. D. Evangelidis and E. Z. Psarakis, "Parametric image alignment using enhanced correlation
        coefficient maximization", IEEE TPAMI 30(10), 1858-1865, 2008.
     .. [5] Z. Zhang, "A flexible new technique for camera calibration", IEEE TPAMI 22(11), 1330-1334, 2000.
+
+    See :class:`uw_sil.sim.align.FaceAligner` for the refinement itself.
     """
 
     def __init__(self, layout: MarkerLayout | None = None, model=None, refine: str = "ecc",
@@ -327,9 +307,7 @@ class MarkerPoseEstimator:
         self._detector = cv2.aruco.ArucoDetector(dictionary, params)
         self._specs = {m.id: m for m in self.layout.markers}
         self._planar = self.layout.planar
-        self._T_panel_plane = self._marker_plane() if self._planar else None
-        self._renderer = None
-        self.ecc_max_pixels = 60_000
+        self.aligner = FaceAligner(model, plane=self._marker_plane(), min_ecc=min_ecc) if self._planar else None
 
     def _marker_plane(self) -> np.ndarray:
         """A frame on the markers' plane (z = its normal, towards the markers' front), in the panel frame."""
@@ -348,9 +326,8 @@ class MarkerPoseEstimator:
 
     def close(self) -> None:
         """Release the renderer of the ECC refinement (if one was made)."""
-        if self._renderer is not None:
-            self._renderer.close()
-            self._renderer = None
+        if self.aligner is not None:
+            self.aligner.close()
 
     def __enter__(self):
         return self
@@ -457,9 +434,10 @@ class MarkerPoseEstimator:
             # the mirror IPPE solution too when the corners hardly tell them apart: the face decides
             tries = poses if math.isfinite(ambiguity) and ambiguity > 0.2 else poses[:1]
             for _, T0 in tries:
-                Te, c, why_c = self._refine_ecc(image, camera, T0)
+                al = self.aligner.refine(image, camera, T0)
+                Te, c = al.T, al.ecc
                 if Te is None:
-                    why = why or why_c
+                    why = why or al.reason
                     continue
                 r_e = self._reprojection(obj, img, Te, K)
                 if r_e[0] > max(self.max_rms_px, 3 * rms):
@@ -484,62 +462,3 @@ class MarkerPoseEstimator:
         uv = p[:, :2] / p[:, 2:3] * [K[0, 0], K[1, 1]] + [K[0, 2], K[1, 2]]
         res = np.linalg.norm(uv - img, axis=1)
         return float(np.sqrt(np.mean(res ** 2))), float(res.max())
-
-    def _refine_ecc(self, image, camera: CameraModel, T0: np.ndarray, passes: int = 2):
-        """(T, correlation, '') or (None, nan, why): align the rendered face with the image."""
-        import cv2
-
-        if self._renderer is None:
-            from .render import Renderer
-
-            self._renderer = Renderer(self.model, camera=camera)
-        elif self._renderer.camera != camera:
-            self._renderer.camera = camera
-        img = np.asarray(image)
-        real = (img if img.ndim == 2 else cv2.cvtColor(np.ascontiguousarray(img), cv2.COLOR_RGB2GRAY)).astype(np.float32)
-        xt = (np.arange(camera.width) - camera.cx) / camera.fx
-        yt = (np.arange(camera.height) - camera.cy) / camera.fy
-        T, cc = T0, float("nan")
-        for _ in range(passes):
-            rr = self._renderer.render(T)
-            P = T @ self._T_panel_plane
-            n, p0 = P[:3, 2], P[:3, 3]
-            den = n[0] * xt[None, :] + n[1] * yt[:, None] + n[2]
-            with np.errstate(divide="ignore", invalid="ignore"):
-                z_plane = (n @ p0) / den
-            face = (rr.labels > 0) & np.isfinite(rr.depth) & (np.abs(rr.depth - z_plane) < 0.003 * np.abs(z_plane))
-            face = cv2.erode(face.astype(np.uint8), np.ones((5, 5), np.uint8))
-            if int(face.sum()) < 400:
-                return None, float("nan"), f"the panel face covers {int(face.sum())} px (< 400)"
-            ys, xs = np.nonzero(face)
-            m = 24
-            x0, x1 = max(0, xs.min() - m), min(camera.width, xs.max() + m + 1)
-            y0, y1 = max(0, ys.min() - m), min(camera.height, ys.max() + m + 1)
-            tmpl = cv2.cvtColor(rr.rgb, cv2.COLOR_RGB2GRAY)[y0:y1, x0:x1] * np.float32(255.0)
-            src, mask = real[y0:y1, x0:x1], face[y0:y1, x0:x1] * np.uint8(255)
-            # a face larger than ~250x250 px is aligned at half resolution (plenty of precision, 4x faster)
-            f = 2 if (x1 - x0) * (y1 - y0) > self.ecc_max_pixels else 1
-            if f > 1:
-                size = ((x1 - x0) // f, (y1 - y0) // f)
-                tmpl, src = (cv2.resize(a, size, interpolation=cv2.INTER_AREA) for a in (tmpl, src))
-                mask = (cv2.resize(mask, size, interpolation=cv2.INTER_AREA) == 255).astype(np.uint8) * 255
-            W = np.eye(3, dtype=np.float32)
-            try:
-                cc, W = cv2.findTransformECCWithMask(
-                    np.ascontiguousarray(tmpl), np.ascontiguousarray(src), np.ascontiguousarray(mask),
-                    np.full(mask.shape, 255, np.uint8), W, cv2.MOTION_HOMOGRAPHY,
-                    (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 60, 1e-6), 5)
-            except cv2.error as exc:
-                msg = str(exc).strip().splitlines()[-1] if str(exc).strip() else type(exc).__name__
-                return None, float("nan"), f"ECC did not converge ({msg})"
-            # full-image pixels -> crop (shift) -> reduced (pixel centres: x_f = (x + 0.5) / f - 0.5)
-            A = np.array([[1.0 / f, 0, 0.5 / f - 0.5 - x0 / f], [0, 1.0 / f, 0.5 / f - 0.5 - y0 / f], [0, 0, 1.0]])
-            W_full = np.linalg.inv(A) @ W.astype(float) @ A
-            T_new = _pose_from_homography(camera.K, W_full @ _plane_homography(camera.K, T, self._T_panel_plane),
-                                          self._T_panel_plane)
-            if T_new is None or T_new[2, 3] <= 0:
-                return None, float("nan"), "ECC homography does not decompose into a pose in front of the camera"
-            T = T_new
-        if not cc >= self.min_ecc:
-            return None, float("nan"), f"ECC correlation {cc:.2f} < {self.min_ecc:g}"
-        return T, float(cc), ""
