@@ -158,7 +158,7 @@ def load_truth(bag_path) -> dict:
 def synthesize_trial(out, n_frames: int = 20, seed: int = 0, params: UnderwaterParams = DEFAULT_TRUTH,
                      camera: Optional[CameraModel] = None, storage: Optional[str] = None, fog: str = "exp2",
                      noise: SensorNoise = SensorNoise(), model=None, start_m: float = 4.0, end_m: float = 1.2,
-                     rate_hz: float = 10.0, effects: Optional[list] = None, overwrite: bool = False,
+                     rate_hz: float = 10.0, effects=None, overwrite: bool = False,
                      progress: Optional[Callable[[int, int], None]] = None, image_topic: str = "/camera/image_raw",
                      info_topic: Optional[str] = "/camera/camera_info", pose_topic: str = "/panel/pose",
                      image_format: str = "raw", jpeg_quality: int = 95, pose_in: str = "topic",
@@ -170,9 +170,13 @@ def synthesize_trial(out, n_frames: int = 20, seed: int = 0, params: UnderwaterP
     out : path
         Bag to write (see :func:`uw_sil.bags.writer.write_trial` for the layout: ``trial.mcap`` becomes the bag
         directory ``trial/`` with ``trial/trial.mcap``; the truth goes to ``trial.truth.json``).
-    effects : list of callables, optional
-        Extra physics applied to each degraded float frame, ``effect(img, render) -> img`` (used by
-        the discrepancy experiments to conceal effects the model lacks). Recorded by name in the truth.
+    effects : str, dict or list, optional
+        Physics the base model lacks, injected into the recorded frames: effects of
+        :mod:`uw_sil.sim.effects` as ``"artificial_light=mild,vignetting"`` or ``{name: values or
+        severity}`` (rendered by :class:`uw_sil.sim.model.UnderwaterModel`; random effects draw from the
+        trial's seed), and/or, in a list, callables ``effect(img, render) -> img`` applied to each degraded
+        float frame. Recorded only in the truth sidecar: ``effects`` (names) and ``effect_params``
+        (``{name: {param: value}}`` of the registered ones).
     progress : callable(done, total), optional
     image_topic, info_topic, pose_topic : str
         Topic names; ``info_topic=None`` writes no camera_info (a field bag: give the calibration as a
@@ -201,12 +205,21 @@ def synthesize_trial(out, n_frames: int = 20, seed: int = 0, params: UnderwaterP
     from .camera_yaml import CameraCalibration, write_camera_yaml
     from .records import Sample
     from .writer import write_trial
+    from ..sim.model import normalize_effects
     from ..sim.simcam import SimCamera
 
     if n_frames < 1:
         raise ValueError("n_frames must be >= 1")
     if pose_in not in POSE_IN:
         raise ValueError(f"pose_in must be one of {POSE_IN}, got {pose_in!r}")
+    if effects is None or isinstance(effects, (str, dict)):
+        effects = [effects] if effects else []
+    funcs = [e for e in effects if callable(e)]
+    model_effects = {}
+    for e in effects:
+        if not callable(e):
+            model_effects.update(normalize_effects(e))
+    model_effects = normalize_effects(model_effects)
     camera = camera or CameraModel.from_fov()
     calib = CameraCalibration.from_camera_model(camera, D=distortion, camera_name="synthetic")
     rng = np.random.default_rng(seed)
@@ -225,11 +238,13 @@ def synthesize_trial(out, n_frames: int = 20, seed: int = 0, params: UnderwaterP
     def samples() -> Iterator:
         import cv2
 
-        with SimCamera(params, camera=render_cam, model=model, fog=fog) as sim:
+        # random effects get their own stream (the trial's seed, offset), so trials without them keep their noise
+        with SimCamera(params, camera=render_cam, model=model, fog=fog, effects=model_effects,
+                       seed=int(seed) + 7919) as sim:
             for k, T in enumerate(poses):
                 frame = sim.render(T)
                 img = frame.image
-                for eff in effects or ():
+                for eff in funcs:
                     img = eff(img, frame.render)
                 if maps is not None:
                     img = cv2.remap(np.ascontiguousarray(img), maps[0], maps[1], cv2.INTER_LINEAR,
@@ -265,7 +280,8 @@ def synthesize_trial(out, n_frames: int = 20, seed: int = 0, params: UnderwaterP
         "n_frames": int(n_frames),
         "ranges_m": [float(np.linalg.norm(T[:3, 3])) for T in poses],
         "camera": asdict(camera),
-        "effects": [getattr(e, "name", getattr(e, "__name__", repr(e))) for e in (effects or [])],
+        "effects": list(model_effects) + [getattr(e, "name", getattr(e, "__name__", repr(e))) for e in funcs],
+        "effect_params": model_effects,
         "bag": str(bag_path),
         "image_topic": image_topic,
         "image_format": image_format,
