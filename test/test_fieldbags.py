@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import yaml
 
-from uw_sil.bags import BagError, open_bag
+from uw_sil.bags import open_bag
 from uw_sil.bags.camera_yaml import CameraCalibration, load_camera_yaml, write_camera_yaml
 from uw_sil.bags.source import BagSource, PoseFrom, describe_sources
 from uw_sil.bags.synth import synthesize_trial

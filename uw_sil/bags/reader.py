@@ -31,7 +31,6 @@ from typing import Iterator, NamedTuple
 import numpy as np
 import yaml
 
-from ..sim.camera import CameraModel
 from ..sim.transforms import pose_to_matrix
 from .imgmsg import compressed_to_rgb, image_to_rgb
 from .mcap_recover import McapFormatError, McapScanReport, iter_mcap, read_mcap_summary
