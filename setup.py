@@ -56,7 +56,7 @@ setup(
         ],
         # `uw-sil batch --executor dask://HOST:PORT`
         "dask": ["dask[distributed]>=2024.1"],
-        "test": ["pytest>=7", "dask[distributed]>=2024.1"],
+        "test": ["pytest>=7", "dask[distributed]>=2024.1", "hypothesis>=6.100"],
     },
     zip_safe=True,
     maintainer="uw_sil developers",

@@ -395,11 +395,12 @@ def test_compressed_image_topic(tmp_path):
 
 def test_missing_topic_and_wrong_type_errors(tmp_path):
     bag = write_trial(tmp_path / "e.mcap", make_samples(2))
-    with pytest.raises(BagError, match=r"'/camera/nope' is not in bag .*/camera/image_raw \[sensor_msgs/msg/Image\]"):
+    with pytest.raises(BagError, match=r"e: topic '/camera/nope' is not in the bag; it has: "
+                                       r".*/camera/image_raw \[sensor_msgs/msg/Image\]"):
         read_samples(bag, image_topic="/camera/nope")
     with pytest.raises(BagError, match=r"'/tf' has type tf2_msgs/msg/TFMessage, expected geometry_msgs/msg/PoseStamped"):
         read_samples(bag, pose_topic="/tf")
-    with pytest.raises(BagError, match="not in bag"):
+    with pytest.raises(BagError, match="not in the bag"):
         iter_messages(bag, "/nope")
     with pytest.raises(ValueError, match="must differ"):
         read_samples(bag, info_topic="/camera/image_raw")

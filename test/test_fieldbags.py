@@ -16,7 +16,7 @@ from uw_sil.bags.camera_yaml import CameraCalibration, load_camera_yaml, write_c
 from uw_sil.bags.source import BagSource, PoseFrom, describe_sources
 from uw_sil.bags.synth import synthesize_trial
 from uw_sil.bags.tf import TfError, TfExtrapolationError, TransformBuffer, slerp
-from uw_sil.cli import main
+from uw_sil.cli import EXIT_BAD_INPUT, main
 from uw_sil.sim.camera import CameraModel
 from uw_sil.sim.transforms import pose_to_matrix
 from scipy.spatial.transform import Rotation
@@ -336,7 +336,7 @@ def test_pose_from_parsing():
     assert PoseFrom.parse("tf::panel").camera_frame == ""
     assert PoseFrom.parse("topic:/a/b").topic == "/a/b" and str(PoseFrom.parse("markers")) == "markers"
     for bad in ("tf:cam", "pose", "topic:", "tf:a:b:c"):
-        with pytest.raises(ValueError, match="--pose-from must be"):
+        with pytest.raises(ValueError, match="--pose-from: must be"):
             PoseFrom.parse(bad)
 
 
@@ -347,7 +347,7 @@ def _run_bad(capsys, tmp_path, args):
     out = tmp_path / "o" / "fit.yaml"
     rc = main(["fit", *args, "--out", str(out), "--max-iter", "1"])
     err = capsys.readouterr().err.strip()
-    assert rc == 1
+    assert rc == EXIT_BAD_INPUT
     assert not (tmp_path / "o").exists()
     lines = [line for line in err.splitlines() if not line.startswith("fitting with")]
     assert len(lines) == 1, err
@@ -361,7 +361,8 @@ def test_bad_field_input_one_line_nothing_written(field_bags, tmp_path, capsys):
     # a topic that does not exist: the bag's topics are listed
     msg = _run_bad(capsys, tmp_path, ["--bag", str(bag), "--image-topic", "/camera/image_raw/compressed",
                                       "--camera-info", str(d / "cam.yaml"), "--pose-from", "markers"])
-    assert "'/camera/image_raw/compressed' is not in bag" in msg and FIELD_TOPIC in msg and "/tf_static" in msg
+    assert "topic '/camera/image_raw/compressed' is not in the bag; it has:" in msg and FIELD_TOPIC in msg
+    assert "/tf_static" in msg
     # a frame missing from /tf: the frames are listed
     msg = _run_bad(capsys, tmp_path, base + ["--pose-from", "tf:camera_link:panel"])
     assert "frame 'camera_link' is not in /tf and /tf_static" in msg and "base_link, camera_optical_frame, map" in msg
@@ -373,7 +374,7 @@ def test_bad_field_input_one_line_nothing_written(field_bags, tmp_path, capsys):
     assert "is 320x240 but camera calibration" in msg and "is for 640x480" in msg
     # a pose topic that is not there
     msg = _run_bad(capsys, tmp_path, base + ["--pose-from", "topic:/panel/pose"])
-    assert "'/panel/pose' is not in bag" in msg
+    assert "topic '/panel/pose' is not in the bag" in msg
 
 
 def test_tf_tree_with_a_gap_and_extrapolation(tmp_path, capsys):
@@ -388,7 +389,8 @@ def test_tf_tree_with_a_gap_and_extrapolation(tmp_path, capsys):
                 tf_static=[("base_link", "cam", eye), ("map", "panel", eye)],
                 tf_dynamic=[(10**9 + k * 10**8, "odom", "base_link", eye) for k in range(3)])
     msg = _run_bad(capsys, tmp_path, ["--bag", str(tmp_path / "gap.mcap"), "--pose-from", "tf:cam:panel"])
-    assert msg.startswith("uw-sil fit: error: tf tree has a gap: no chain of transforms connects 'cam' and 'panel'")
+    assert msg.startswith(f"uw-sil: error: {tmp_path / 'gap'}: tf tree has a gap: no chain of transforms connects "
+                          f"'cam' and 'panel'")
     assert "tree of 'odom'" in msg and "tree of 'map'" in msg
     # connected, but the navigation stops before the images: every frame refused, one line says why
     far = [(5 * 10**8 + k * 10**7, "odom", "base_link", eye) for k in range(3)]

@@ -5,7 +5,6 @@ import os
 import signal
 import stat
 import sys
-import threading
 import time
 
 import pytest
@@ -67,17 +66,37 @@ def test_share_file_finds_the_fastdds_profile():
 # ------------------------------------------------------------------------------------------ launcher
 
 FAKE_PYTHON = r"""#!/bin/bash
-# Stands in for `python -m uw_sil.nodes.NAME --ros-args ...`: behaves according to NAME.
+# Stands in for `python -m uw_sil.nodes.NAME --ros-args ...`: behaves according to NAME. A long-running
+# node creates the file $READY once its signal traps are set; quick and fail wait for it (when READY is
+# set), so the launcher never signals a node that has not yet installed its traps, however busy the machine.
 name="${2#uw_sil.nodes.}"
 echo "profile=$FASTDDS_DEFAULT_PROFILES_FILE"
 echo -n "partial line without newline"; echo " completed"
+wait_ready() { if [ -n "$READY" ]; then while [ ! -e "$READY" ]; do sleep 0.02; done; fi; }
+ready() { if [ -n "$READY" ]; then touch "$READY"; fi; }
 case "$name" in
-  quick) sleep 0.5; echo "finished"; exit 0 ;;
-  fail) sleep 0.2; echo "something broke" >&2; exit 3 ;;
-  stubborn) trap '' INT TERM; while :; do sleep 0.05; done ;;
-  *) trap 'echo "got SIGINT"; exit 0' INT; while :; do sleep 0.05; done ;;
+  quick) wait_ready; sleep 0.2; echo "finished"; exit 0 ;;
+  fail) wait_ready; sleep 0.2; echo "something broke" >&2; exit 3 ;;
+  stubborn) trap '' INT TERM; ready; echo "ignoring signals"; while :; do sleep 0.05; done ;;
+  *) trap 'echo "got SIGINT"; exit 0' INT; ready; echo "trapping SIGINT"; while :; do sleep 0.05; done ;;
 esac
 """
+
+
+class SignalOn(io.StringIO):
+    """Launcher output that sends this process SIGINT (a Ctrl-C) each time the next of ``triggers`` appears
+    in it: the test reacts to what the launcher did, not to a timer racing it."""
+
+    def __init__(self, *triggers):
+        super().__init__()
+        self.triggers = list(triggers)
+
+    def write(self, text):
+        n = super().write(text)
+        while self.triggers and self.triggers[0] in self.getvalue():
+            self.triggers.pop(0)
+            os.kill(os.getpid(), signal.SIGINT)
+        return n
 
 
 @pytest.fixture
@@ -100,10 +119,11 @@ def _pids(text: str) -> list:
     return [int(line.split("(pid ")[1].split(")")[0]) for line in text.splitlines() if "(pid " in line]
 
 
-def test_required_node_ends_the_graph(fake_python):
+def test_required_node_ends_the_graph(fake_python, tmp_path):
     out = io.StringIO()
     rc = launcher.launch([NodeSpec("server", "server"), NodeSpec("quick", "quick", required=True)],
-                         env={"PATH": os.environ["PATH"]}, out=out, python=fake_python)
+                         env={"PATH": os.environ["PATH"], "READY": str(tmp_path / "ready")}, out=out,
+                         python=fake_python)
     text = out.getvalue()
     assert rc == 0, text
     assert "[quick ] finished" in text                     # output prefixed with the (padded) node name
@@ -115,16 +135,11 @@ def test_required_node_ends_the_graph(fake_python):
     assert not any(_alive(p) for p in _pids(text))
 
 
-def test_a_node_that_ends_normally_does_not_end_the_graph(fake_python):
-    out = io.StringIO()
-    timer = threading.Timer(1.0, os.kill, (os.getpid(), signal.SIGINT))
-    timer.start()
-    try:
-        rc = launcher.launch([NodeSpec("server", "server"), NodeSpec("quick", "quick")],
-                             env={"PATH": os.environ["PATH"], "FASTDDS_DEFAULT_PROFILES_FILE": "/mine.xml"},
-                             out=out, python=fake_python)
-    finally:
-        timer.cancel()
+def test_a_node_that_ends_normally_does_not_end_the_graph(fake_python, tmp_path):
+    out = SignalOn("quick exited with status 0")        # Ctrl-C once quick has ended
+    rc = launcher.launch([NodeSpec("server", "server"), NodeSpec("quick", "quick")],
+                         env={"PATH": os.environ["PATH"], "FASTDDS_DEFAULT_PROFILES_FILE": "/mine.xml",
+                              "READY": str(tmp_path / "ready")}, out=out, python=fake_python)
     text = out.getvalue()
     # the server kept running after `quick` ended, until Ctrl-C, which it got once and obeyed
     assert rc == 0, text
@@ -134,10 +149,11 @@ def test_a_node_that_ends_normally_does_not_end_the_graph(fake_python):
     assert not any(_alive(p) for p in _pids(text))
 
 
-def test_failing_node_stops_the_graph_with_an_error(fake_python):
+def test_failing_node_stops_the_graph_with_an_error(fake_python, tmp_path):
     out = io.StringIO()
-    rc = launcher.launch([NodeSpec("server", "server"), NodeSpec("fail", "fail")], env={"PATH": os.environ["PATH"]},
-                         out=out, python=fake_python)
+    rc = launcher.launch([NodeSpec("server", "server"), NodeSpec("fail", "fail")],
+                         env={"PATH": os.environ["PATH"], "READY": str(tmp_path / "ready")}, out=out,
+                         python=fake_python)
     text = out.getvalue()
     assert rc == 1
     assert "[fail  ] something broke" in text               # stderr is shown too
@@ -145,11 +161,12 @@ def test_failing_node_stops_the_graph_with_an_error(fake_python):
     assert "FAILED: fail" in text
 
 
-def test_node_ignoring_signals_is_killed_and_reported(fake_python):
+def test_node_ignoring_signals_is_killed_and_reported(fake_python, tmp_path):
     out = io.StringIO()
     t0 = time.monotonic()
     rc = launcher.launch([NodeSpec("stubborn", "stubborn"), NodeSpec("quick", "quick", required=True)],
-                         env={"PATH": os.environ["PATH"]}, out=out, python=fake_python, stop_timeout=0.3)
+                         env={"PATH": os.environ["PATH"], "READY": str(tmp_path / "ready")}, out=out,
+                         python=fake_python, stop_timeout=0.3)
     text = out.getvalue()
     assert rc == 1, text
     assert "sending SIGTERM" in text and "sending SIGKILL" in text and "killed by SIGKILL" in text
@@ -158,17 +175,11 @@ def test_node_ignoring_signals_is_killed_and_reported(fake_python):
 
 
 def test_repeated_ctrl_c_escalates_at_once(fake_python):
-    out = io.StringIO()
-    timers = [threading.Timer(t, os.kill, (os.getpid(), signal.SIGINT)) for t in (0.8, 1.1, 1.4)]
-    for t in timers:
-        t.start()
+    # Ctrl-C once the node ignores signals, again once the launcher is stopping it, a third time after SIGTERM
+    out = SignalOn("[stubborn] ignoring signals", "SIGINT received: stopping stubborn", "sending SIGTERM")
     t0 = time.monotonic()
-    try:
-        rc = launcher.launch([NodeSpec("stubborn", "stubborn")], env={"PATH": os.environ["PATH"]}, out=out,
-                             python=fake_python, stop_timeout=60)
-    finally:
-        for t in timers:
-            t.cancel()
+    rc = launcher.launch([NodeSpec("stubborn", "stubborn")], env={"PATH": os.environ["PATH"]}, out=out,
+                         python=fake_python, stop_timeout=60)
     text = out.getvalue()
     assert rc == 1 and "sending SIGTERM" in text and "sending SIGKILL" in text, text
     assert time.monotonic() - t0 < 10                      # not 2 x stop_timeout

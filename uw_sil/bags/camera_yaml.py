@@ -292,21 +292,21 @@ def load_camera_yaml(path) -> CameraCalibration:
     """
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"camera calibration file {path} does not exist")
+        raise FileNotFoundError(f"{path}: camera calibration file does not exist")
     text = path.read_text()
     if text.lstrip().startswith("%YAML:1.0"):
-        raise ValueError(f"{path} is an OpenCV FileStorage YAML, not a ROS camera_calibration YAML "
+        raise ValueError(f"{path}: an OpenCV FileStorage YAML, not a ROS camera_calibration YAML "
                          f"(image_width, camera_matrix: {{rows, cols, data}}, ...)")
     try:
         doc = yaml.safe_load(text)
     except yaml.YAMLError as exc:
-        raise ValueError(f"{path} is not valid YAML: {str(exc).splitlines()[0]}") from None
+        raise ValueError(f"{path}: not valid YAML: {str(exc).splitlines()[0]}") from None
     if not isinstance(doc, dict):
-        raise ValueError(f"{path} is not a camera_calibration YAML (expected a mapping with image_width, "
+        raise ValueError(f"{path}: not a camera_calibration YAML (expected a mapping with image_width, "
                          f"image_height, camera_matrix, ...)")
     missing = [k for k in ("image_width", "image_height", "camera_matrix") if k not in doc]
     if missing:
-        raise ValueError(f"{path} lacks {', '.join(missing)} (ROS camera_calibration YAML expected)")
+        raise ValueError(f"{path}: lacks {', '.join(missing)} (ROS camera_calibration YAML expected)")
     K = _matrix(doc, "camera_matrix", (3, 3), path)
     D = _matrix(doc, "distortion_coefficients", (-1,), path)
     R = _matrix(doc, "rectification_matrix", (3, 3), path)

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import logging
 import re
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator, NamedTuple
@@ -36,7 +37,7 @@ from .imgmsg import compressed_to_rgb, image_to_rgb
 from .mcap_recover import McapFormatError, McapScanReport, iter_mcap, read_mcap_summary
 from .records import (CAMERA_INFO_TYPE, COMPRESSED_IMAGE_TYPE, IMAGE_TYPE, POSE_TYPE, STORAGE_SUFFIX, BagError,
                       Sample)
-from .stamps import StampSynchronizer, SyncStats
+from .stamps import StampSynchronizer, SyncStats, seconds_to_ns
 
 __all__ = [
     "TopicInfo", "ReadReport", "BagInfo", "RawMessage", "open_bag", "iter_raw", "iter_messages", "read_samples",
@@ -257,7 +258,7 @@ def resolve_bag_path(path) -> Path:
         d = p.with_suffix("")
         if p.suffix in (".mcap", ".db3") and (d / p.name).is_file():
             return d
-        raise FileNotFoundError(f"bag {p} does not exist")
+        raise FileNotFoundError(f"{p}: does not exist (expected a bag directory, a .mcap or a .db3 file)")
     return p
 
 
@@ -272,7 +273,7 @@ def _layout(path) -> _Layout:
                 storage = meta["storage_identifier"]
                 rel = list(meta["relative_file_paths"])
             except (yaml.YAMLError, OSError, KeyError, TypeError) as exc:
-                raise BagError(f"{meta_path} is not a readable rosbag2 metadata file: {exc!r}") from None
+                raise BagError(f"{meta_path}: not a readable rosbag2 metadata file: {_one_line(exc)}") from None
             if storage not in STORAGE_SUFFIX:
                 raise BagError(f"{p}: storage {storage!r} is not supported (supported: mcap, sqlite3)")
             files = [p / Path(x).name for x in rel]
@@ -288,9 +289,9 @@ def _layout(path) -> _Layout:
                  for s, suf in STORAGE_SUFFIX.items()}
         kinds = [s for s, fs in found.items() if fs]
         if not kinds:
-            raise BagError(f"{p} is not a ROS 2 bag: no metadata.yaml and no .mcap or .db3 file in it")
+            raise BagError(f"{p}: not a ROS 2 bag: no metadata.yaml and no .mcap or .db3 file in it")
         if len(kinds) > 1:
-            raise BagError(f"{p} has no metadata.yaml and holds both .mcap and .db3 files: pass one file")
+            raise BagError(f"{p}: no metadata.yaml, and both .mcap and .db3 files in it: pass one file")
         log.warning("%s has no metadata.yaml (recording not closed?): reading its %s file(s) directly", p,
                     kinds[0])
         return _Layout(p, kinds[0], found[kinds[0]], None)
@@ -298,7 +299,7 @@ def _layout(path) -> _Layout:
     if kind is None:
         size = p.stat().st_size
         what = "an empty file" if size == 0 else "neither an MCAP nor an SQLite file"
-        raise BagError(f"{p} is not a ROS 2 bag: {what} (expected a bag directory, a .mcap or a .db3 file)")
+        raise BagError(f"{p}: not a ROS 2 bag: {what} (expected a bag directory, a .mcap or a .db3 file)")
     return _Layout(p, kind, [p], None)
 
 
@@ -369,11 +370,14 @@ class _Types:
 # Reading raw messages
 
 
-def _merge_mcap(report: ReadReport, r: McapScanReport) -> None:
+def _merge_mcap(report: ReadReport, r: McapScanReport, stopped_early: bool = False) -> None:
+    """Add a file's scan to ``report``. When the reader stopped early, the unread rest of the file is not a
+    sign of damage: only damage found so far counts."""
     for t, n in r.messages.items():
         report.read[t] = report.read.get(t, 0) + n
-    report.bytes_unreadable += r.bytes_unreadable
-    if r.truncated or r.skipped_chunks:
+    if not stopped_early:
+        report.bytes_unreadable += r.bytes_unreadable
+    if (r.truncated and not stopped_early) or r.skipped_chunks or r.errors:   # cut off or damaged: messages lost
         report.truncated = True
     report.errors += [f"{Path(r.path).name}: {e}" for e in r.errors]
 
@@ -384,22 +388,26 @@ def _raw_stream(layout: _Layout, topics, report: ReadReport, types: _Types | Non
     if layout.storage == "mcap":
         for f in layout.files:
             r = McapScanReport(str(f))
+            early = True
             try:
                 for m in iter_mcap(f, want, r):
                     ch = m.channel
                     if not ch.msgtype:
                         raise BagError(f"{f}: topic {ch.topic} has no schema (message type unknown)")
                     if ch.message_encoding != "cdr":
-                        raise BagError(f"{ch.topic}: message encoding {ch.message_encoding!r} is not ROS 2 CDR")
+                        raise BagError(f"{f}: topic {ch.topic}: message encoding {ch.message_encoding!r} is not "
+                                       f"ROS 2 CDR")
                     if types is not None:
                         types.add(ch.msgtype, ch.schema_encoding, ch.schema_data)
                     yield ch.topic, ch.msgtype, m.log_time, m.data
+                early = False
             except McapFormatError as exc:
                 raise BagError(str(exc)) from None
-            _merge_mcap(report, r)
-            if r.truncated:
-                log.warning("%s is cut off or damaged: read %d complete messages, %d of %d bytes unreadable (%s)",
-                            f, sum(r.messages.values()), r.bytes_unreadable, r.size, "; ".join(r.errors))
+            finally:  # also when the reader stops early: the report tells what was read and found so far
+                _merge_mcap(report, r, stopped_early=early)
+                if (r.truncated and not early) or r.skipped_chunks or r.errors:
+                    log.warning("%s is cut off or damaged: read %d complete messages, %d of %d bytes unreadable "
+                                "(%s)", f, sum(r.messages.values()), r.bytes_unreadable, r.size, "; ".join(r.errors))
         return
     from rosbags.interfaces import MessageDefinitionFormat
 
@@ -441,6 +449,14 @@ def _sqlite_units(layout):
         yield unit
 
 
+def _one_line(exc: Exception) -> str:
+    """An exception's message on one line; for a YAML syntax error the problem and where it is."""
+    mark, problem = getattr(exc, "problem_mark", None), getattr(exc, "problem", None)
+    if mark is not None and problem:
+        return f"YAML syntax error: {problem} (line {mark.line + 1}, column {mark.column + 1})"
+    return " ".join(str(exc).split()) or type(exc).__name__
+
+
 def _sqlite_errors() -> tuple:
     """Exceptions SQLite raises through rosbags (it uses apsw, and may use the standard module)."""
     import sqlite3
@@ -453,7 +469,7 @@ def _sqlite_errors() -> tuple:
 
 
 def _sqlite_open_error(root: Path, exc: Exception) -> str:
-    return (f"cannot open sqlite3 bag {root}: {exc} (a damaged or cut-off sqlite3 file cannot be read here; "
+    return (f"{root}: cannot open sqlite3 bag: {exc} (a damaged or cut-off sqlite3 file cannot be read here; "
             f"SQLite's own `sqlite3 in.db3 .recover | sqlite3 out.db3` may salvage it)")
 
 
@@ -505,7 +521,7 @@ def _open_layout(layout: _Layout) -> BagInfo:
             try:
                 summ = read_mcap_summary(f)
             except OSError as exc:
-                raise BagError(f"cannot read {f}: {exc}") from None
+                raise BagError(f"{f}: cannot read: {exc}") from None
             if summ is not None:
                 for t, ch in summ.channels.items():
                     types[t] = ch.msgtype
@@ -557,6 +573,17 @@ def _open_layout(layout: _Layout) -> BagInfo:
     return BagInfo(layout.root, layout.storage, [str(f) for f in layout.files], topics, start, end, rep)
 
 
+@contextmanager
+def _located(root: Path):
+    """Errors found while reading a bag start with the bag's path (``<bag>: <topic> at stamp ...``)."""
+    try:
+        yield
+    except BagError as exc:
+        if str(exc).startswith(str(root)):
+            raise
+        raise BagError(f"{root}: {exc}") from None
+
+
 class _Stream:
     """An iterator with a :class:`ReadReport` (final once exhausted); usable as a context manager."""
 
@@ -585,14 +612,14 @@ class _Stream:
 def _check_topics(info: BagInfo, wanted: dict) -> None:
     """``wanted``: topic -> allowed types (empty tuple: any)."""
     if not info.topics:
-        raise BagError(f"bag {info.path} has no topics (empty bag)")
+        raise BagError(f"{info.path}: no topics (empty bag)")
     for topic, allowed in wanted.items():
         if topic not in info.topics:
             have = ", ".join(f"{t.name} [{t.msgtype}]" for t in sorted(info.topics.values(), key=lambda x: x.name))
-            raise BagError(f"topic {topic!r} is not in bag {info.path}; it has: {have}")
+            raise BagError(f"{info.path}: topic {topic!r} is not in the bag; it has: {have}")
         mt = info.topics[topic].msgtype
         if allowed and mt not in allowed:
-            raise BagError(f"topic {topic!r} has type {mt}, expected {' or '.join(allowed)}")
+            raise BagError(f"{info.path}: topic {topic!r} has type {mt}, expected {' or '.join(allowed)}")
 
 
 def iter_raw(path, topics=None) -> Iterator[RawMessage]:
@@ -644,8 +671,9 @@ def iter_messages(path, topic: str) -> Iterator[tuple]:
     types = _Types()
 
     def gen():
-        for _, msgtype, t, data in _raw_stream(layout, [topic], rep, types):
-            yield t, types.deserialize(data, msgtype)
+        with _located(layout.root):
+            for _, msgtype, t, data in _raw_stream(layout, [topic], rep, types):
+                yield t, types.deserialize(data, msgtype)
         rep.finished = True
 
     return _Stream(gen(), rep)
@@ -692,7 +720,7 @@ class _SampleBuilder:
                 raise BagError(f"{self.info_topic} at stamp {t} ns is not a usable calibration "
                                f"(uncalibrated camera?): {exc}") from None
             if int(msg.binning_x) > 1 or int(msg.binning_y) > 1:
-                self._warn(f"{self.info_topic} declares binning {msg.binning_x}x{msg.binning_y}: ignored")
+                self.warn(f"{self.info_topic} declares binning {msg.binning_x}x{msg.binning_y}: ignored")
             self._calibs[key] = calib
         return calib, fid
 
@@ -704,7 +732,8 @@ class _SampleBuilder:
             raise BagError(f"{self.pose_topic} at stamp {t} ns: {exc}") from None
         return T, str(msg.header.frame_id)
 
-    def _warn(self, text: str) -> None:
+    def warn(self, text: str) -> None:
+        """Add ``text`` to the report's warnings and log it (once per distinct text)."""
         if text not in self.report.warnings:
             self.report.warnings.append(text)
             log.warning(text)
@@ -726,7 +755,7 @@ class _SampleBuilder:
                        f"{np.round(calib.D, 4).tolist()}): frames of {self.image_topic} are rectified (OpenCV, "
                        f"K, D, R -> P) and simulated with P's pinhole")
             if r.outside_fraction > 0.005:
-                self._warn(f"rectified frames have {100 * r.outside_fraction:.1f}% of their pixels outside the raw "
+                self.warn(f"rectified frames have {100 * r.outside_fraction:.1f}% of their pixels outside the raw "
                            f"image (P computed with alpha > 0): those repeat the border")
         return r(img)
 
@@ -791,7 +820,7 @@ class _SampleBuilder:
                 raise BagError(f"{self.image_topic} has no header.frame_id: name the camera frame in "
                                f"--pose-from tf:CAMERA_FRAME:{self.pose_from.panel_frame}")
             if frame and self.pose_from.camera_frame and frame.lstrip("/") != self.pose_from.camera_frame:
-                self._warn(f"{self.image_topic} is in frame {frame!r} but poses are looked up for "
+                self.warn(f"{self.image_topic} is in frame {frame!r} but poses are looked up for "
                            f"{self.pose_from.camera_frame!r}: it must be the camera's optical frame (z forward)")
             try:
                 T = self.tf.lookup(cam_frame, self.pose_from.panel_frame, t)
@@ -814,7 +843,7 @@ class _SampleBuilder:
                                    f"next to its mesh and pass --model")
                 return None, f"markers: {mp.reason}"
             if mp.unexpected_ids:
-                self._warn(f"ArUco ids {mp.unexpected_ids} seen in {self.image_topic} are not in the marker layout "
+                self.warn(f"ArUco ids {mp.unexpected_ids} seen in {self.image_topic} are not in the marker layout "
                            f"{self.markers.layout.source}: ignored")
             self.marker_poses += 1
             T = mp.T
@@ -919,16 +948,21 @@ def read_samples(path, image_topic: str = "/camera/image_raw", info_topic: str |
         wanted[pose_topic] = (POSE_TYPE,)
     _check_topics(info, wanted)
     if not info.topics[image_topic].count:
-        raise BagError(f"topic {image_topic!r} of bag {info.path} has no messages")
+        raise BagError(f"{info.path}: topic {image_topic!r} has no messages")
     tf_buffer = markers = None
+    if pf.kind == "markers" and marker_layout is None:
+        from ..sim.markers import layout_for_model
+
+        marker_layout = layout_for_model(model)       # a missing or bad layout file: fail now
     if pf.kind == "tf":
         from .tf import load_tf
 
-        tf_buffer = load_tf(path, extrapolation_s=tf_extrapolation, max_gap_s=tf_max_gap)
-        if pf.camera_frame:
-            tf_buffer.chain(pf.camera_frame, pf.panel_frame)    # missing frame / gap: fail now
-        else:
-            tf_buffer.chain(pf.panel_frame, pf.panel_frame)
+        with _located(layout.root):
+            tf_buffer = load_tf(path, extrapolation_s=tf_extrapolation, max_gap_s=tf_max_gap)
+            if pf.camera_frame:
+                tf_buffer.chain(pf.camera_frame, pf.panel_frame)    # missing frame / gap: fail now
+            else:
+                tf_buffer.chain(pf.panel_frame, pf.panel_frame)
     rep = _new_report(layout)
     rep.requested = list(topics)
     rep.expected = info.report.expected
@@ -944,6 +978,10 @@ def read_samples(path, image_topic: str = "/camera/image_raw", info_topic: str |
     index = {t: k for k, t in enumerate(topics)}
     k_info = index.get(info_topic) if info_topic else None
     k_pose = index.get(pose_topic) if pf.kind == "topic" else None
+
+    late_ns = seconds_to_ns(lateness)
+    newest = [None] * len(topics)
+    went_back: set = set()
 
     def gen():
         nonlocal markers
@@ -971,43 +1009,52 @@ def read_samples(path, image_topic: str = "/camera/image_raw", info_topic: str |
             return s
 
         try:
-            for topic, msgtype, _, data in _raw_stream(layout, topics, rep, types):
-                msg = types.deserialize(data, msgtype)
-                t = _stamp_ns(msg.header.stamp)
-                k = index[topic]
-                if k == 0:
-                    item = (n_img, (msgtype, msg))
-                    n_img += 1
-                elif k == k_info:
-                    item = builder.camera(msg, t)
-                else:
-                    item = builder.pose_msg(msg, t)
-                if sync is None:
-                    rep.sync.received[0] += 1
-                    rep.sync.matched += 1
-                    s = emit(t, (item,))
-                    if s is not None:
-                        yield s
-                    continue
-                for match in sync.add(k, t, item):
-                    s = emit(match.stamp_ns, match.items)
-                    if s is not None:
-                        yield s
-            if sync is not None:
-                for match in sync.flush():
-                    s = emit(match.stamp_ns, match.items)
-                    if s is not None:
-                        yield s
-        finally:
+            with _located(layout.root):
+                for topic, msgtype, _, data in _raw_stream(layout, topics, rep, types):
+                    msg = types.deserialize(data, msgtype)
+                    t = _stamp_ns(msg.header.stamp)
+                    k = index[topic]
+                    if newest[k] is not None and newest[k] - t > late_ns and topic not in went_back:
+                        went_back.add(topic)
+                        builder.warn(f"{topic}: header stamps go back in time by more than the out-of-order "
+                                     f"tolerance ({lateness:g} s; first at stamp {t} ns, "
+                                     f"{(newest[k] - t) / 1e9:.3f} s back): such messages may be paired with a "
+                                     f"neighbour's partners or dropped")
+                    newest[k] = t if newest[k] is None else max(newest[k], t)
+                    if k == 0:
+                        item = (n_img, (msgtype, msg))
+                        n_img += 1
+                    elif k == k_info:
+                        item = builder.camera(msg, t)
+                    else:
+                        item = builder.pose_msg(msg, t)
+                    if sync is None:
+                        rep.sync.received[0] += 1
+                        rep.sync.matched += 1
+                        s = emit(t, (item,))
+                        if s is not None:
+                            yield s
+                        continue
+                    for match in sync.add(k, t, item):
+                        s = emit(match.stamp_ns, match.items)
+                        if s is not None:
+                            yield s
+                if sync is not None:
+                    for match in sync.flush():
+                        s = emit(match.stamp_ns, match.items)
+                        if s is not None:
+                            yield s
+                rep.finished = True
+                if rep.samples == 0 and rep.skipped:
+                    raise BagError(f"no frame of {image_topic} has a panel pose from {pf}: {len(rep.skipped)} "
+                                   f"skipped, {rep.skip_summary()}")
+        finally:        # also when the reader stops early (closed stream): what was dropped so far
             for closable in (markers, aligner):
                 if closable is not None:
                     closable.close()
-        rep.finished = True
-        if sync is not None and sync.stats.dropped:
-            log.warning("%s: %d of %d images had no camera_info/pose within tolerance and were dropped",
-                        layout.root, sync.stats.dropped, sync.stats.received[0])
-        if rep.samples == 0 and rep.skipped:
-            raise BagError(f"no frame of {image_topic} has a panel pose from {pf}: {len(rep.skipped)} skipped, "
-                           f"{rep.skip_summary()}")
+            if sync is not None and sync.stats.dropped:
+                log.warning("%s: %d of %d images %shad no camera_info/pose within tolerance and were dropped",
+                            layout.root, sync.stats.dropped, sync.stats.received[0],
+                            "" if rep.finished else "read so far ")
 
     return _Stream(gen(), rep)

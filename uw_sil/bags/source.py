@@ -71,7 +71,7 @@ class PoseFrom:
             cam, sep2, panel = rest.partition(":")
             if sep2 and panel and ":" not in panel:
                 return cls("tf", camera_frame=cam.lstrip("/"), panel_frame=panel.lstrip("/"))
-        raise ValueError(f"--pose-from must be topic:/TOPIC, tf:CAMERA_FRAME:PANEL_FRAME or markers, got {s!r}")
+        raise ValueError(f"--pose-from: must be topic:/TOPIC, tf:CAMERA_FRAME:PANEL_FRAME or markers, got {s!r}")
 
     def __str__(self) -> str:
         if self.kind == "topic":
@@ -147,7 +147,8 @@ class BagSource:
 
     def describe(self) -> str:
         """One line: what is read from where."""
-        cam = f"camera_info file {self.camera_info}" if self.camera_info is not None else f"{self.info_topic}"
+        cal = getattr(self.camera_info, "source", None) or self.camera_info
+        cam = f"camera_info file {cal}" if self.camera_info is not None else f"{self.info_topic}"
         refine = ", refined by ECC face alignment" if self.refine_pose == "ecc" and self.pose_from.kind != "markers" else ""
         return f"images {self.image_topic}, intrinsics {cam}, pose {self.pose_from}{refine}"
 

@@ -294,12 +294,12 @@ def load_tf(bag, topics=TF_TOPICS, extrapolation_s: float = 0.1, max_gap_s: floa
     if not present:
         tf_like = [t.name for t in info.topics.values() if t.msgtype == TF_TYPE]
         hint = f" (TFMessage topics in it: {', '.join(tf_like)})" if tf_like else ""
-        raise TfError(f"bag {info.path} has no {' or '.join(topics)} topic, so no tf pose source{hint}")
+        raise TfError(f"{info.path}: no {' or '.join(topics)} topic, so no tf pose source{hint}")
     for t in present:
         if info.topics[t].msgtype != TF_TYPE:
-            raise TfError(f"topic {t!r} of bag {info.path} has type {info.topics[t].msgtype}, expected {TF_TYPE}")
+            raise TfError(f"{info.path}: topic {t!r} has type {info.topics[t].msgtype}, expected {TF_TYPE}")
     buf = TransformBuffer(extrapolation_s, max_gap_s)
-    buf.source = " and ".join(present) + f" of {info.path}"
+    buf.source = " and ".join(present)
     for t in present:
         static = t.endswith("_static")
         for _, msg in iter_messages(bag, t):

@@ -25,7 +25,10 @@ from .imgmsg import rgb_to_compressed
 from .records import (CAMERA_INFO_TYPE, COMPRESSED_IMAGE_TYPE, IMAGE_TYPE, POSE_TYPE, ROSBAG2_VERSION, STORAGE_SUFFIX,
                       TF_TYPE, Sample)
 
-__all__ = ["write_trial"]
+__all__ = ["write_trial", "MAX_STAMP_NS"]
+
+#: Latest stamp a ROS 2 header can carry: ``builtin_interfaces/Time`` has an int32 ``sec``.
+MAX_STAMP_NS = (2**31 - 1) * 1_000_000_000 + 999_999_999
 
 
 
@@ -60,8 +63,10 @@ looks_like_bag_dir = _looks_like_bag_dir
 def _check_sample(s: Sample, i: int) -> tuple[np.ndarray, np.ndarray]:
     if not isinstance(s, Sample):
         raise TypeError(f"sample {i} is a {type(s).__name__}, expected uw_sil.bags.Sample")
-    if isinstance(s.stamp_ns, bool) or not isinstance(s.stamp_ns, (int, np.integer)) or not 0 <= s.stamp_ns < 2**63:
-        raise ValueError(f"sample {i}: stamp_ns must be an integer in [0, 2**63), got {s.stamp_ns!r}")
+    stamp = s.stamp_ns
+    if isinstance(stamp, bool) or not isinstance(stamp, (int, np.integer)) or not 0 <= stamp <= MAX_STAMP_NS:
+        raise ValueError(f"sample {i}: stamp_ns must be an integer in [0, {MAX_STAMP_NS}] (a header stamp's sec is "
+                         f"an int32), got {s.stamp_ns!r}")
     img = np.asarray(s.image)
     if img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:
         raise ValueError(f"sample {i}: image must be (H, W, 3) uint8 RGB, got {img.dtype} {img.shape}")

@@ -166,10 +166,10 @@ def _supervise(procs, sel, stop_requested, out, width, stop_timeout) -> int:
             break
         now = time.monotonic()
         if stopping_since is None and reason is not None:
+            signals_at_stop = len(stop_requested)   # before writing: a Ctrl-C during the write is a second one
             out.write(f"[launch] {reason}: stopping {', '.join(p.spec.name for p in running)}\n")
             _signal_all(running, signal.SIGINT)
             stopping_since = now
-            signals_at_stop = len(stop_requested)
         elif stopping_since is not None and escalated < 2 and (
                 now - stopping_since > stop_timeout * (escalated + 1)
                 or len(stop_requested) > signals_at_stop + escalated):  # at once on another Ctrl-C

@@ -116,21 +116,21 @@ def load_marker_layout(path) -> MarkerLayout:
 
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"marker layout {path} does not exist")
+        raise FileNotFoundError(f"{path}: marker layout does not exist")
     try:
         doc = yaml.safe_load(path.read_text())
     except yaml.YAMLError as exc:
-        raise ValueError(f"marker layout {path} is not valid YAML: {str(exc).splitlines()[0]}") from None
+        raise ValueError(f"{path}: marker layout is not valid YAML: {str(exc).splitlines()[0]}") from None
     if not isinstance(doc, dict) or not isinstance(doc.get("markers"), list) or not doc["markers"]:
-        raise ValueError(f"marker layout {path} needs 'dictionary' and a non-empty 'markers' list")
+        raise ValueError(f"{path}: a marker layout needs 'dictionary' and a non-empty 'markers' list")
     dname = str(doc.get("dictionary", "DICT_4X4_50"))
     if not dname.startswith("DICT_") or not hasattr(cv2.aruco, dname):
-        raise ValueError(f"marker layout {path}: unknown ArUco dictionary {dname!r} (e.g. DICT_4X4_50, "
+        raise ValueError(f"{path}: unknown ArUco dictionary {dname!r} (e.g. DICT_4X4_50, "
                          f"DICT_5X5_100, DICT_APRILTAG_36h11)")
     n_ids = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dname)).bytesList.shape[0]
     specs, seen = [], set()
     for k, m in enumerate(doc["markers"]):
-        where = f"marker layout {path}, marker #{k}"
+        where = f"{path}: marker #{k}"
         if not isinstance(m, dict):
             raise ValueError(f"{where}: expected a mapping with id, size, position")
         try:
