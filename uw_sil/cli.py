@@ -222,8 +222,9 @@ def cmd_synth(args) -> int:
                                  overwrite=args.force, image_topic=image_topic, info_topic=info_topic,
                                  image_format=fmt, jpeg_quality=args.jpeg_quality, pose_in=args.pose_in,
                                  distortion=distortion, camera_yaml=args.camera_yaml, **kw)
-    print(f"wrote bag {truth['bag']} ({args.frames} frames, {image_topic}, pose in {args.pose_in}) and "
-          f"{truth_path(out)}" + (f" and {args.camera_yaml}" if args.camera_yaml else ""))
+    print(f"wrote bag {truth['bag']} ({args.frames} frames) and {truth_path(out)}"
+          + (f" and {args.camera_yaml}" if args.camera_yaml else "") + f": images on {image_topic}, pose in "
+          f"{args.pose_in}")
     if args.contact_sheet:
         from .bags.source import BagSource
 

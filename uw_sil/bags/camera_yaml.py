@@ -161,8 +161,10 @@ class CameraCalibration:
     def from_camera_info(cls, msg, source: str = "camera_info") -> "CameraCalibration":
         """From any object with the fields of ``sensor_msgs/CameraInfo`` (rclpy or rosbags message)."""
         k = np.asarray(msg.k, dtype=float)
-        if k.size != 9 or not np.isfinite(k).all() or k[0] <= 0 or k[4] <= 0:
-            raise ValueError(f"{source} has an invalid K matrix {list(k)} (uncalibrated camera?)")
+        if k.size != 9:
+            raise ValueError(f"{source}: K has {k.size} numbers, 9 expected")
+        if not np.isfinite(k).all() or k[0] <= 0 or k[4] <= 0:
+            raise ValueError(f"K has fx={k[0]:g}, fy={k[4]:g}; both must be finite and > 0")
         r = np.asarray(msg.r, dtype=float)
         R = r.reshape(3, 3) if r.size == 9 and np.any(r) else np.eye(3)
         p = np.asarray(msg.p, dtype=float)

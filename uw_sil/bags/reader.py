@@ -785,7 +785,7 @@ class _SampleBuilder:
         try:
             img = image_to_rgb(img_msg) if msgtype == IMAGE_TYPE else compressed_to_rgb(img_msg)
         except (ValueError, TypeError) as exc:
-            raise BagError(f"{self.image_topic} image #{index} at stamp {t} ns: {exc}") from None
+            raise BagError(f"{self.image_topic} at stamp {t} ns: {exc} (image #{index})") from None
         frame = str(img_msg.header.frame_id)
         if info_item is not None:
             calib, info_frame = info_item
@@ -794,8 +794,8 @@ class _SampleBuilder:
             calib, info_frame = self.file_calibration, ""
             what = f"camera calibration {calib.source} is for"
         if (img.shape[1], img.shape[0]) != (calib.width, calib.height):
-            raise BagError(f"{self.image_topic} image #{index} at stamp {t} ns is {img.shape[1]}x{img.shape[0]} but "
-                           f"{what} {calib.width}x{calib.height}")
+            raise BagError(f"{self.image_topic} at stamp {t} ns is {img.shape[1]}x{img.shape[0]} but "
+                           f"{what} {calib.width}x{calib.height} (image #{index})")
         raw = img
         img = self._rectify(img, calib, t)
         if not img.flags.writeable or not img.flags.c_contiguous:
