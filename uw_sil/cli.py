@@ -1,13 +1,18 @@
 """The ``uw-sil`` command: the core library's offline tools on ROS 2 bags.
 
     uw-sil synth --out trial.mcap [--frames N] [--seed S] [--params a_r=0.4,...|fit.yaml] [--storage mcap|sqlite3]
-                 [--effects NAME[=mild|strong],...]
-    uw-sil info trial.mcap
-    uw-sil fit --bag trial.mcap [--frames K] [--optimizer pso|cmaes] [--color-model rgb|hsv] [--channels HSV]
-               [--out fit.yaml] [--report DIR]
+                 [--effects NAME[=mild|strong],...] [--image-topic T] [--compressed jpeg|png]
+                 [--pose-in topic|tf|none] [--info-topic T|none] [--camera-yaml cam.yaml] [--distortion k1,...,k3]
+    uw-sil info trial.mcap [BAG SOURCE] [--check N]
+    uw-sil fit --bag trial.mcap [BAG SOURCE] [--frames K] [--optimizer pso|cmaes] [--color-model rgb|hsv]
+               [--channels HSV] [--out fit.yaml] [--report DIR]
     uw-sil enhance --bag trial.mcap --params fit.yaml --out enhanced.mcap [--method sil|dcp|udcp] [--b-from-frame]
     uw-sil features --bag trial.mcap --params fit.yaml [--frames I,J] [--csv table.csv] [--report DIR]
     uw-sil demo [--out-dir out]          # synth -> contact sheet -> fit -> enhance -> features -> report
+
+BAG SOURCE (commands reading bags): [--image-topic T] [--info-topic T | --camera-info cam.yaml]
+           [--pose-from topic:/panel/pose | tf:CAMERA_FRAME:PANEL_FRAME | markers] [--refine-pose none|ecc]
+           [--model MESH]
 
 Exit codes: 0 success; 2 bad input or command line: a wrong, damaged or unusable input file or option
 value is reported as ONE line ``uw-sil: error: <file or option>: <what is wrong>`` on stderr (argparse's
@@ -108,6 +113,73 @@ def _synth_params(text: str):
         return _parse_params(text), None
 
 
+def _add_bag_source_args(parser, model: bool = True) -> None:
+    """Options saying how to read a (field) bag: image topic, intrinsics, pose source (and panel model).
+
+    Every command reading bags takes them (``info``, ``fit``, ...); :func:`_bag_source` turns the parsed
+    arguments into a :class:`uw_sil.bags.source.BagSource`. Defaults (None here) are the standard topics.
+    """
+    g = parser.add_argument_group("which data of the bag (field trials)")
+    g.add_argument("--image-topic", default=None,
+                   help="sensor_msgs/Image or CompressedImage topic (default /camera/image_raw)")
+    g.add_argument("--info-topic", default=None, help="sensor_msgs/CameraInfo topic (default /camera/camera_info)")
+    g.add_argument("--camera-info", metavar="CAMERA_YAML", default=None,
+                   help="camera intrinsics from a ROS camera_calibration YAML file instead of the info topic; "
+                        "plumb_bob distortion is removed from the frames (rectified with OpenCV)")
+    g.add_argument("--pose-from", default=None, metavar="SOURCE",
+                   help="panel pose: topic:/panel/pose (default), tf:CAMERA_FRAME:PANEL_FRAME (from /tf and "
+                        "/tf_static, interpolated to each image) or markers (the panel's ArUco markers)")
+    g.add_argument("--tf-tolerance", type=float, default=None, metavar="S",
+                   help="tf lookups may lie this far (s) outside the recorded transforms (default 0.1)")
+    g.add_argument("--refine-pose", choices=["none", "ecc"], default=None,
+                   help="ecc: refine topic/tf poses by aligning the rendered panel face with each frame "
+                        "(the fit needs sub-pixel poses; converges from ~2-3 cm, ~1.5 deg); markers always are")
+    if model:
+        g.add_argument("--model", default=None, metavar="MESH",
+                       help="panel mesh (default: the shipped intervention panel); for --pose-from markers "
+                            "its markers are declared in MESH's .markers.yaml next to it")
+
+
+_BAG_SOURCE_ARGS = ("image_topic", "info_topic", "camera_info", "pose_from", "tf_tolerance", "refine_pose")
+
+
+def _bag_source(args):
+    """The :class:`uw_sil.bags.source.BagSource` of options added by :func:`_add_bag_source_args`."""
+    from .bags.source import DEFAULT_IMAGE_TOPIC, DEFAULT_INFO_TOPIC, DEFAULT_POSE_TOPIC, BagSource, PoseFrom
+
+    from .bags.camera_yaml import load_camera_yaml
+
+    calib = None
+    if args.camera_info is not None:
+        with _input(args.camera_info):
+            calib = load_camera_yaml(args.camera_info)
+    with _input("--pose-from"):
+        pose_from = PoseFrom.parse(args.pose_from or f"topic:{DEFAULT_POSE_TOPIC}")
+    kw = dict(image_topic=args.image_topic or DEFAULT_IMAGE_TOPIC, info_topic=args.info_topic or DEFAULT_INFO_TOPIC,
+              camera_info=calib, pose_from=pose_from, model=getattr(args, "model", None))
+    if args.tf_tolerance is not None:
+        _check_option("--tf-tolerance", args.tf_tolerance, args.tf_tolerance >= 0, ">= 0 seconds")
+        kw["tf_extrapolation_s"] = args.tf_tolerance
+    if args.refine_pose is not None:
+        kw["refine_pose"] = args.refine_pose
+    with _input("--image-topic"):
+        return BagSource(**kw)
+
+
+def _pose_note(p) -> str:
+    """How a frame's pose was found, for a progress line (empty for a plain recorded pose)."""
+    p = p or {}
+    if p.get("source") == "markers":
+        return (f", pose from markers {p['ids']}: reprojection {p['reprojection_rms_px']:.2f} px RMS "
+                f"(max {p['reprojection_max_px']:.2f}), refined by {p['refinement']}")
+    if p.get("refinement") == "ecc":
+        return (f", pose from {p['source']} refined by ECC: moved {p['correction_mm']:.1f} mm, "
+                f"{p['correction_deg']:.2f} deg (correlation {p['ecc']:.3f})")
+    if "refinement" in p:
+        return f", pose from {p['source']}, {p['refinement']}"
+    return ""
+
+
 def _progress_bar(total: int, desc: str):
     """A ``progress(done, total)`` callback drawing :func:`uw_sil._shared.progress.progress_bar` on stderr."""
     from ._shared.progress import progress_bar
@@ -131,31 +203,54 @@ def cmd_synth(args) -> int:
     with _input("--width/--height/--hfov"):
         camera = CameraModel.from_fov(args.width, args.height, args.hfov)
     kw = {} if params is None else {"params": params}
+    fmt = args.compressed or "raw"
+    image_topic = args.image_topic or ("/camera/image_raw" + ("/compressed" if fmt != "raw" else ""))
+    info_topic = None if (args.info_topic or "").lower() == "none" else (args.info_topic or "/camera/camera_info")
+    distortion = None
+    if args.distortion:
+        with _input("--distortion"):
+            distortion = [float(v) for v in args.distortion.replace(",", " ").split()]
+        _check_option("--distortion", args.distortion, len(distortion) == 5, "5 plumb_bob coefficients k1,k2,p1,p2,k3")
+    if info_topic is None and not args.camera_yaml:
+        raise InputError("--info-topic none: writes no camera_info, so --camera-yaml FILE is needed for the intrinsics")
     # The bag writer removes a partial bag when rendering fails or is interrupted; the truth sidecar
     # is written only after the bag is complete.
     with _input(args.out):
         truth = synthesize_trial(out, n_frames=args.frames, seed=args.seed, camera=camera, storage=args.storage,
                                  fog=args.fog or fog or "exp2", start_m=args.start, end_m=args.end,
                                  effects=args.effects, progress=_progress_bar(args.frames, "render"),
-                                 overwrite=args.force, **kw)
-    print(f"wrote bag {truth['bag']} ({args.frames} frames) and {truth_path(out)}")
+                                 overwrite=args.force, image_topic=image_topic, info_topic=info_topic,
+                                 image_format=fmt, jpeg_quality=args.jpeg_quality, pose_in=args.pose_in,
+                                 distortion=distortion, camera_yaml=args.camera_yaml, **kw)
+    print(f"wrote bag {truth['bag']} ({args.frames} frames) and {truth_path(out)}"
+          + (f" and {args.camera_yaml}" if args.camera_yaml else "") + f": images on {image_topic}, pose in "
+          f"{args.pose_in}")
     if args.contact_sheet:
-        _contact_sheet(out, Path(args.contact_sheet))
+        from .bags.source import BagSource
+
+        pose_from = {"topic": f"topic:{truth['pose_topic']}", "none": "markers",
+                     "tf": f"tf:{truth['camera_frame']}:{truth['panel_frame']}"}[args.pose_in]
+        source = BagSource(image_topic=image_topic, info_topic=info_topic, camera_info=args.camera_yaml,
+                           pose_from=pose_from)
+        _contact_sheet(out, Path(args.contact_sheet), source=source)
         print(f"wrote {args.contact_sheet}")
     return 0
 
 
-def _contact_sheet(bag: Path, png: Path, rows: int = 4):
-    from .bags import open_bag, read_samples
+def _contact_sheet(bag: Path, png: Path, rows: int = 4, source=None):
+    from .bags import open_bag
+    from .bags.source import BagSource
     from .sim.render import Renderer
     from .viz import contact_sheet, save_figure
 
-    n = open_bag(bag).topics["/camera/image_raw"].count
+    source = source or BagSource()
+    n = open_bag(bag).topics[source.image_topic].count
     pick = set(np.unique(np.linspace(0, n - 1, min(rows, n)).round().astype(int)).tolist())
     items = []
     renderer = None
     try:
-        for i, s in enumerate(read_samples(bag)):      # streamed: only the picked frames are kept
+        for s in source.read(bag):      # streamed: only the picked frames are kept
+            i = s.index
             if i not in pick:
                 continue
             renderer = renderer or Renderer(camera=s.camera)
@@ -169,10 +264,36 @@ def _contact_sheet(bag: Path, png: Path, rows: int = 4):
 
 def cmd_info(args) -> int:
     from .bags import open_bag
+    from .bags.source import describe_sources
 
     with _input(args.bag):
         info = open_bag(args.bag)
-    print(info.describe() if hasattr(info, "describe") else info)
+        print(info.describe() if hasattr(info, "describe") else info)
+        print(describe_sources(args.bag))
+    if any(getattr(args, k) is not None for k in _BAG_SOURCE_ARGS) or args.check:
+        _check_option("--check", args.check, args.check >= 0, ">= 0")
+        source = _bag_source(args)
+        n = max(1, args.check or 5)
+        got = []
+        with _input(args.bag):
+            stream = source.read(args.bag)
+            try:
+                for s in stream:
+                    got.append(s)
+                    if len(got) >= n:
+                        break
+            finally:
+                stream.close()
+        rep = stream.report
+        print(f"reading {source.describe()}: {len(got)} frame(s) with a pose in the first "
+              f"{len(got) + len(rep.skipped)} image(s)")
+        for s in got:
+            print(f"  image #{s.index}: {s.camera.width}x{s.camera.height}, panel at "
+                  f"{np.linalg.norm(s.pose[:3, 3]):.2f} m{_pose_note(s.pose_info)}")
+        for i, _, why in rep.skipped:
+            print(f"  image #{i}: no pose: {why}")
+        for w in rep.warnings + rep.notes:
+            print(f"  note: {w}")
     return 0
 
 
@@ -220,6 +341,7 @@ def cmd_fit(args) -> int:
     _check_option("--min-coverage", args.min_coverage, 0 <= args.min_coverage < 1, "in [0, 1)")
     _check_option("--max-iter", args.max_iter, args.max_iter is None or args.max_iter >= 1, ">= 1")
     sim_noise = _sim_noise(args.sim_noise)
+    source = _bag_source(args)
     _warn_if_damaged(args.bag)
     fits = []
     for m in methods:
@@ -227,15 +349,20 @@ def cmd_fit(args) -> int:
         opts = {name: getattr(args, name) for name in ("max_iter", "tol", "patience") if getattr(args, name) is not None}
         with _input(args.bag):
             fits.append(fit_bag(args.bag, k=args.frames, stride=args.stride, min_coverage=args.min_coverage,
-                                method=m, color_model=args.color_model, channels=args.channels, fog=args.fog,
+                                source=source, method=m, color_model=args.color_model, channels=args.channels, fog=args.fog,
                                 hist_pixels=args.hist_pixels, sim_noise=sim_noise,
                                 x0=None if args.start == "centre" else args.start, callback=_raise_if_interrupted,
                                 seed=args.seed, progress=True, **opts))
     _raise_if_interrupted()
     fit = fits[0]
     rr = fit.read_report      # damage found while reading (a bad chunk, a bad record) was logged as a warning
+    for i, reason in fit.images_without_pose:
+        print(f"image #{i} has no pose: {reason}", file=sys.stderr)
     for i, reason in fit.skipped:
         print(f"skipped frame #{i}: {reason}", file=sys.stderr)
+    for f in fit.frames:
+        print(f"fit frame #{f.index} (image #{f.image_index}, {f.range_median:.2f} m, panel "
+              f"{100 * f.coverage:.0f}%){_pose_note(f.pose_info)}", file=sys.stderr)
     comment = (f"uw_sil backward fit of {args.bag}: {fit.optim.method}, theta {fit.theta_start:.4f} -> "
                f"{fit.theta_best:.4f}, {fit.optim.n_evals} evaluations, {fit.optim.n_iters} iterations "
                f"(stop: {fit.optim.stop_reason}), {fit.wall_time_s:.1f} s")
@@ -455,14 +582,33 @@ def build_parser() -> argparse.ArgumentParser:
                    "marine_snow, camera_response, unmodeled_geometry, pose_error")
     s.add_argument("--contact-sheet", help="also write a PNG contact sheet here")
     s.add_argument("--force", action="store_true", help="overwrite an existing bag")
+    fs = s.add_argument_group("field-style bags")
+    fs.add_argument("--image-topic", default=None,
+                    help="image topic (default /camera/image_raw, with --compressed /camera/image_raw/compressed)")
+    fs.add_argument("--compressed", choices=["jpeg", "png"], default=None,
+                    help="write sensor_msgs/CompressedImage instead of raw rgb8 images")
+    fs.add_argument("--jpeg-quality", type=int, default=95)
+    fs.add_argument("--info-topic", default=None,
+                    help="camera_info topic (default /camera/camera_info); 'none': no camera_info (needs --camera-yaml)")
+    fs.add_argument("--camera-yaml", default=None, metavar="FILE",
+                    help="also write the camera's calibration as a ROS camera_calibration YAML file")
+    fs.add_argument("--distortion", default=None, metavar="K1,K2,P1,P2,K3",
+                    help="plumb_bob lens distortion of the synthetic camera, e.g. --distortion=-0.1,0.02,0,0,0")
+    fs.add_argument("--pose-in", choices=["topic", "tf", "none"], default="topic",
+                    help="record the panel pose as /panel/pose (default), only as a navigation tf tree "
+                         "(map->odom->base_link->camera_optical_frame, map->panel), or not at all (markers)")
     s.set_defaults(func=cmd_synth)
 
-    i = sub.add_parser("info", help="topics, counts and losses of a bag")
+    i = sub.add_parser("info", help="topics, counts and losses of a bag; image topics and pose sources")
     i.add_argument("bag")
+    _add_bag_source_args(i)
+    i.add_argument("--check", type=int, default=0, metavar="N",
+                   help="read the first N frames with the given source and say which have a pose")
     i.set_defaults(func=cmd_info)
 
     f = sub.add_parser("fit", help="backward optimization: fit the 7 parameters to a recording")
     f.add_argument("--bag", required=True)
+    _add_bag_source_args(f)
     f.add_argument("--frames", type=int, default=3, help="K: frames to fit (default 3)")
     f.add_argument("--stride", type=int, default=1, help="use every n-th frame (more ranges in the K frames)")
     f.add_argument("--min-coverage", type=float, default=0.02, help="skip frames where the panel covers less")

@@ -50,6 +50,8 @@ class FitFrame:
     image: np.ndarray       # (H, W, 3) uint8 RGB, the real frame
     render: object          # uw_sil.sim.render.RenderResult
     coverage: float         # fraction of pixels on the panel
+    image_index: int = -1   # position in the bag's image topic (Sample.index)
+    pose_info: dict = None  # how the pose was found (Sample.pose_info: source, marker reprojection error...)
 
     @property
     def range_median(self) -> float:
@@ -136,7 +138,8 @@ class FrameSelector:
                    else f"panel covers {100 * cov:.1f}% of the image (< {100 * self.min_coverage:.1f}%)")
             self.skipped.append((idx, why))
             return False
-        self.frames.append(FitFrame(idx, int(sample.stamp_ns), np.ascontiguousarray(sample.image), rr, cov))
+        self.frames.append(FitFrame(idx, int(sample.stamp_ns), np.ascontiguousarray(sample.image), rr, cov,
+                                    int(getattr(sample, "index", -1)), getattr(sample, "pose_info", None)))
         return True
 
     def result(self) -> FrameSelection:
@@ -329,6 +332,8 @@ class FitResult:
     noise_sigma: list = None
     read_report: object = None         # uw_sil.bags.ReadReport of the bag (fit_bag), else None
     theta_x0: Optional[float] = None   # θ where the optimizer started (None: PSO's random swarm)
+    images_without_pose: list = field(default_factory=list)   # (image index, reason) from the bag reader
+    pose_source: str = ""
 
     @property
     def noise_level(self) -> float:
@@ -363,8 +368,11 @@ class FitResult:
             "noise_sigma_per_frame": [[float(v) for v in s] for s in (self.noise_sigma or [])],
             "fog": self.fog,
             "frames": [{"index": f.index, "stamp_ns": f.stamp_ns, "coverage": f.coverage,
-                        "range_median_m": f.range_median} for f in self.frames],
+                        "range_median_m": f.range_median, "image_index": f.image_index,
+                        **({"pose": f.pose_info} if f.pose_info else {})} for f in self.frames],
             "skipped_frames": [{"index": i, "reason": r} for i, r in self.skipped],
+            "pose_source": self.pose_source,
+            "images_without_pose": [{"image_index": i, "reason": r} for i, r in self.images_without_pose],
         }
 
 
@@ -506,13 +514,20 @@ def water_start(frames: list, space: ParamSpace) -> np.ndarray:
 
 
 def fit_bag(bag, k: int = 3, stride: int = 1, min_coverage: float = 0.02, max_scan: int = 200, model=None,
-            **fit_options) -> FitResult:
-    """Read a recording, select frames, render them and fit (see :func:`select_frames`, :func:`fit_frames`)."""
-    from ..bags import read_samples
+            source=None, **fit_options) -> FitResult:
+    """Read a recording, select frames, render them and fit (see :func:`select_frames`, :func:`fit_frames`).
+
+    ``source`` (:class:`uw_sil.bags.source.BagSource`) says which topics, calibration and pose source to
+    read; default the standard topics (``/camera/image_raw``, ``/camera/camera_info``, ``/panel/pose``).
+    Its ``model`` (the panel mesh) is used when ``model`` is not given.
+    """
+    from ..bags.source import BagSource
     from ..sim.render import Renderer
 
+    source = BagSource(model=model) if source is None else source
+    model = source.model if model is None else model
     with Renderer(model) as renderer:
-        stream = read_samples(bag)
+        stream = source.read(bag)
         selector = FrameSelector(renderer, k=k, min_coverage=min_coverage, max_scan=max_scan, stride=stride)
         try:
             for s in stream:
@@ -526,6 +541,8 @@ def fit_bag(bag, k: int = 3, stride: int = 1, min_coverage: float = 0.02, max_sc
         sel = selector.result()
     result = fit_frames(sel.frames, skipped=sel.skipped, **fit_options)
     result.read_report = stream.report
+    result.images_without_pose = [(i, why) for i, _, why in stream.report.skipped]
+    result.pose_source = str(source.pose_from)
     return result
 
 

@@ -1,5 +1,6 @@
-"""The simulated camera: pinhole camera and poses, the panel scene, the headless renderer, the
-underwater image model with its parameters, camera noise, the effects the base model leaves out
+"""The simulated camera: pinhole camera and poses, the panel scene (and its fiducial markers, with the
+panel pose from them: :mod:`.markers`, refined by face alignment: :mod:`.align`), the headless renderer,
+the underwater image model with its parameters, camera noise, the effects the base model leaves out
 (:mod:`.effects`) with the extended model (:class:`UnderwaterModel`), and :class:`SimCamera` that puts
 them together.
 
@@ -14,6 +15,8 @@ _EXPORTS = {
     "SimFrame": "simcam", "UnderwaterParams": "params", "degrade": "optics", "estimate_noise_sigma": "noise",
     "facing_pose": "scene", "look_at": "transforms", "matrix_to_pose": "transforms", "pose_to_matrix": "transforms",
     "UnderwaterModel": "model", "Geometry": "model", "parse_effects": "effects", "EFFECTS": "effects",
+    "MarkerLayout": "markers", "MarkerPoseEstimator": "markers", "load_marker_layout": "markers",
+    "FaceAligner": "align",
 }
 __all__ = sorted(_EXPORTS)
 
