@@ -26,7 +26,7 @@ def ros_env(domain: int, base: Optional[dict] = None, **extra) -> dict:
     chosen by the caller (the nodes choose theirs)."""
     env = dict(os.environ if base is None else base)
     env.update(ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYOPENGL_PLATFORM="osmesa",
-               PYTHONUNBUFFERED="1", RCUTILS_LOGGING_BUFFERED_STREAM="0")
+               PYTHONUNBUFFERED="1", RCUTILS_LOGGING_BUFFERED_STREAM="0", PYTHONFAULTHANDLER="1")
     env.pop("FASTDDS_DEFAULT_PROFILES_FILE", None)
     env.update(extra)
     return env

@@ -140,6 +140,7 @@ class BackwardFitNode(Node):
 
         self.renderer = Renderer(self.get_parameter("model_path").value or None)
         self._lock = threading.Lock()
+        self._stopping = threading.Event()   # set by destroy_node: the fit thread ends without touching the node
         self.selector = None
         self.fit_thread = None
         self.result = None
@@ -300,7 +301,7 @@ class BackwardFitNode(Node):
             self.get_logger().info(f"frame #{index} skipped: {reason}")
 
         def on_iteration(it, _x, best):
-            if not self.context.ok():
+            if self._stopping.is_set() or not self.context.ok():
                 return True  # shutting down: stop the optimizer
             self.pub_theta.publish(Float64(data=float(best)))
 
@@ -309,7 +310,7 @@ class BackwardFitNode(Node):
             fit = fit_frames(selection.frames, method=g("optimizer"), color_model=g("color_model"),
                              channels=g("channels"), fog=g("fog_mode"), seed=g("seed"), callback=on_iteration,
                              skipped=selection.skipped, **optim)
-            if not self.context.ok():
+            if self._stopping.is_set() or not self.context.ok():
                 return  # interrupted: the partial result is not written anywhere
             self.result = fit
             if g("output_yaml"):
@@ -323,9 +324,14 @@ class BackwardFitNode(Node):
         values.append(Parameter("noise_sigma", value=fit.noise_level))
         sim = g("sim_node")
         self.get_logger().info(f"{summary}: setting the parameters of {sim}")
-        if not self.sim_params.wait_for_services(timeout_sec=10.0):
-            self._finish(False, f"failed: {summary}, but the parameter services of {sim} are not available")
-            return
+        deadline = time.monotonic() + 10.0
+        while not self.sim_params.services_are_ready():
+            if self._stopping.is_set() or not self.context.ok():
+                return
+            if time.monotonic() > deadline:
+                self._finish(False, f"failed: {summary}, but the parameter services of {sim} are not available")
+                return
+            self._stopping.wait(0.1)
 
         def on_response(f):
             try:
@@ -341,6 +347,13 @@ class BackwardFitNode(Node):
         self.sim_params.set_parameters_atomically(values).add_done_callback(on_response)
 
     def destroy_node(self):
+        # The fit thread first: it uses the node's publishers and parameter client (stopping it ends the
+        # optimizer at its next iteration; a fit interrupted so is not written anywhere).
+        stopping, thread = getattr(self, "_stopping", None), getattr(self, "fit_thread", None)
+        if stopping is not None:
+            stopping.set()
+        if thread is not None and thread is not threading.current_thread():
+            thread.join(timeout=3.0)
         # Also for a node whose constructor was interrupted (Ctrl-C while the renderer starts): rclpy
         # destroys the nodes of a context at shutdown, built or not.
         if getattr(self, "renderer", None) is not None:
