@@ -8,7 +8,7 @@ and poses come from (:mod:`.source`): camera_calibration YAML files and rectific
 Import rules: may import :mod:`uw_sil.sim` (cameras, poses; the renderer for synthetic trials) and
 :mod:`uw_sil._shared`; no metrics, fit or ROS nodes (messages are decoded with ``rosbags``, not rclpy).
 """
-from importlib import import_module
+from .._shared.lazy import lazy_getattr
 
 _EXPORTS = {
     "BagError": "records", "BagInfo": "reader", "RawMessage": "reader", "ReadReport": "reader", "Sample": "records",
@@ -20,8 +20,4 @@ _EXPORTS = {
 }
 __all__ = sorted(_EXPORTS)
 
-
-def __getattr__(name):
-    if name in _EXPORTS:
-        return getattr(import_module(f".{_EXPORTS[name]}", __name__), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__getattr__ = lazy_getattr(__name__, _EXPORTS)

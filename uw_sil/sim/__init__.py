@@ -7,7 +7,7 @@ them together.
 Import rules: imports nothing of uw_sil but :mod:`uw_sil._shared` (no metrics, fit, bags, ROS).
 Heavy modules (pyrender, trimesh) load only when their names are first used.
 """
-from importlib import import_module
+from .._shared.lazy import lazy_getattr
 
 _EXPORTS = {
     "CameraModel": "camera", "FOG_MODES": "optics", "NoiseField": "noise", "ParamSpace": "params",
@@ -20,8 +20,4 @@ _EXPORTS = {
 }
 __all__ = sorted(_EXPORTS)
 
-
-def __getattr__(name):
-    if name in _EXPORTS:
-        return getattr(import_module(f".{_EXPORTS[name]}", __name__), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__getattr__ = lazy_getattr(__name__, _EXPORTS)
