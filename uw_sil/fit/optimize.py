@@ -79,6 +79,9 @@ from typing import Callable, Optional, Sequence
 
 import numpy as np
 
+from .cmaes import run_cmaes
+from .pso import run_pso
+
 __all__ = [
     "METHODS",
     "PSO_PAPER_SETTINGS",
@@ -104,7 +107,6 @@ CMAES_DEFAULT_SIGMA0 = 0.25
 _PSO_OPTIONS = {"minstep": 1e-8, "minfunc": 1e-8}
 _CMAES_OPTIONS = {"sigma0": CMAES_DEFAULT_SIGMA0, "cma_options": None}
 _CMA_RESERVED = ("bounds", "seed", "randn", "popsize")
-_PYSWARM_VERSION = "1.1.2"
 
 
 class StopOptimization(Exception):
@@ -543,133 +545,6 @@ class _Recorder:
 
 
 # --------------------------------------------------------------------------------------------
-# Methods
-# --------------------------------------------------------------------------------------------
-
-
-def _run_pso(rec: _Recorder, seed, s, omega, phi_p, phi_g, max_iter, opts, u0):
-    """Drive pyswarm's Fortran core with batched evaluations (see module docstring)."""
-    import pyswarm
-    from pyswarm._pyswarm import pso as pyswarm_core
-
-    if pyswarm.__version__ != _PYSWARM_VERSION:
-        raise RuntimeError(
-            f"uw_sil.fit.optimize drives the core of pyswarm {_PYSWARM_VERSION}, found "
-            f"pyswarm {pyswarm.__version__}"
-        )
-    d = rec.d
-    lb, ub = np.zeros(d), np.ones(d)
-    # Exactly pyswarm.pso's set-up (1.1.2), on the normalized box.
-    rng = np.random.default_rng(seed)
-    vhigh = np.abs(ub - lb)
-    x = lb + rng.random((s, d)) * (ub - lb)
-    if u0 is not None:
-        x[: u0.shape[0]] = u0  # as pyswarm's ``init``: the first particles start at x0
-    x = np.asfortranarray(x, dtype=np.float64)
-    v = np.asfortranarray(rng.uniform(-vhigh, vhigh, size=(s, d)))
-    rnd_p = np.asfortranarray(rng.random((max_iter, s, d)))
-    rnd_g = np.asfortranarray(rng.random((max_iter, s, d)))
-
-    state = {"calls": 0, "batch": None, "f": None}
-
-    def particle_value(xtmp, ndim):
-        k = state["calls"]
-        state["calls"] = k + 1
-        if rec.stopped:
-            # pyswarm treats values >= 1e300 as infeasible: never a personal or global best
-            return math.inf
-        i = k % s
-        if i == 0:
-            # All S positions of this iteration are already in ``x`` (Fortran works in place).
-            batch = np.array(x, dtype=float, order="C")
-            state["batch"] = batch
-            state["f"] = rec.evaluate(batch)
-        if not np.array_equal(xtmp, state["batch"][i]):
-            raise RuntimeError(
-                "pyswarm asked for a position that differs from the batched one "
-                f"(call {k}, particle {i}); its core no longer works in place as expected"
-            )
-        fi = state["f"][i]
-        return -float(fi) if np.isfinite(fi) else math.inf
-
-    x_out, _, _, fg, _, _, niters, status = pyswarm_core(
-        particle_value, lb, ub, x, v, rnd_p, rnd_g,
-        float(omega), float(phi_p), float(phi_g),
-        float(opts["minstep"]), float(opts["minfunc"]), 0, 0,  # pyswarm's patience: see _Recorder
-        np.empty(0, dtype=np.int32),
-    )
-    if not np.shares_memory(x_out, x):
-        raise RuntimeError("pyswarm's core copied the position array; batched evaluation invalid")
-    reason = {0: "max_iter", 1: "minstep", 2: "minfunc", 3: "patience"}.get(int(status))
-    if reason is None:
-        raise RuntimeError(f"unknown pyswarm status {status}")
-    if not rec.stopped:
-        rec.stop_reason = reason
-        if np.isfinite(rec.best_f) and -fg != rec.best_f:
-            raise RuntimeError(
-                f"pyswarm's best {-fg} differs from the best recorded evaluation {rec.best_f}"
-            )
-    info = {
-        "pyswarm_version": pyswarm.__version__,
-        "pyswarm_nit": int(niters),
-        "pyswarm_nfev": int(s + niters * s),
-        "pyswarm_status": int(status),
-        "pyswarm_calls": int(state["calls"]),
-    }
-    return info
-
-
-def _run_cmaes(rec: _Recorder, seed, popsize, max_iter, opts, u0):
-    """CMA-ES by ``cma`` (ask/tell), one batched call per generation."""
-    import cma
-
-    d = rec.d
-    rng = np.random.default_rng(seed)
-    inopts = {
-        "bounds": [[0.0] * d, [1.0] * d],
-        # Private generator: cma then neither seeds nor draws from numpy's global RNG.
-        "randn": lambda *shape: rng.standard_normal(shape),
-        "seed": np.nan,
-        "verbose": -9,
-        "verb_disp": 0,
-        "verb_log": 0,
-        "signals_filename": "",
-    }
-    if popsize is not None:
-        inopts["popsize"] = popsize
-    inopts.update(opts["cma_options"])
-    mean0 = np.full(d, 0.5) if u0 is None else u0[0]
-    es = cma.CMAEvolutionStrategy(mean0, opts["sigma0"], inopts)
-    if u0 is not None:
-        # The mean itself is never sampled; inject it so that the first generation evaluates x0
-        # (a good start must not be lost: the result is never worse than x0).
-        es.inject([u0[0]], force=True)
-    while True:
-        sols = es.ask()
-        f = rec.evaluate(np.array(sols, dtype=float))
-        # cma minimizes; invalid -> worse than the worst finite value of the batch.
-        loss = -f
-        bad = ~np.isfinite(loss)
-        if bad.any():
-            good = loss[~bad]
-            worst = float(good.max()) if good.size else 0.0
-            spread = float(good.max() - good.min()) if good.size else 0.0
-            loss[bad] = worst + 1.0 + spread
-        es.tell(sols, loss.tolist())
-        if rec.stopped:
-            break
-        if rec.iteration >= max_iter:
-            rec.stop_reason = "max_iter"
-            break
-        stop = es.stop()
-        if stop:
-            rec.stop_reason = "cma:" + ",".join(sorted(str(k) for k in stop))
-            break
-    return {"cma_version": cma.__version__, "popsize": int(es.popsize),
-            "cma_iterations": int(es.countiter), "final_sigma": float(es.sigma)}
-
-
-# --------------------------------------------------------------------------------------------
 # Public entry point
 # --------------------------------------------------------------------------------------------
 
@@ -834,9 +709,9 @@ def optimize(
     rec = _Recorder(objective, lo, hi, target, callback, bar, tol, patience)
     try:
         if method == "pso":
-            info = _run_pso(rec, seed, s, omega, phi_p, phi_g, max_iter, opts, u0)
+            info = run_pso(rec, seed, s, omega, phi_p, phi_g, max_iter, opts, u0)
         else:
-            info = _run_cmaes(rec, seed, s, max_iter, opts, u0)
+            info = run_cmaes(rec, seed, s, max_iter, opts, u0)
             settings["swarm_size"] = info["popsize"]
     finally:
         if bar is not None:
