@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 import yaml
 
-from uw_sil.backward import (BackwardObjective, fit_frames, linear_start, select_frames, write_params_yaml)
+from uw_sil.backward import (BackwardObjective, fit_bag, fit_frames, linear_start, select_frames, spread_stride,
+                             write_params_yaml)
 from uw_sil.bag import read_samples
 from uw_sil.camera import CameraModel
 from uw_sil.params import ParamSpace, UnderwaterParams
@@ -78,6 +79,13 @@ def test_cmaes_from_the_centre_must_move_and_improves_on_its_start(frames):
     assert fit.theta_x0 == fit.theta_start                         # both at the centre of the bounds
     assert fit.theta_best > fit.theta_x0 + 0.2                     # measured: 0.43 -> 0.8x in 8 iterations
     assert np.abs(fit.x_best - centre).max() > 0.05
+
+
+def test_fit_bag_spreads_the_frames_over_the_recording_by_default(trial):
+    assert [spread_stride(n, k) for n, k in ((11, 3), (8, 3), (2, 3), (0, 3), (11, 1))] == [5, 3, 1, 1, 1]
+    fit = fit_bag(trial, method="cmaes", max_iter=1)
+    assert [f.index for f in fit.frames] == [0, 5, 10]
+    assert [f.index for f in fit_bag(trial, stride=1, method="cmaes", max_iter=1).frames] == [0, 1, 2]
 
 
 def test_nothing_visible_gives_a_clear_error(trial):

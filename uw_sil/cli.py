@@ -217,7 +217,8 @@ def build_parser() -> argparse.ArgumentParser:
     f = sub.add_parser("fit", help="backward optimization: fit the 7 parameters to a recording")
     f.add_argument("--bag", required=True)
     f.add_argument("--frames", type=int, default=3, help="K: frames to fit (default 3)")
-    f.add_argument("--stride", type=int, default=1, help="use every n-th frame (more ranges in the K frames)")
+    f.add_argument("--stride", type=int, default=None,
+                   help="use every n-th frame (default: spread the K frames over the bag's first 200 frames)")
     f.add_argument("--min-coverage", type=float, default=0.02, help="skip frames where the panel covers less")
     f.add_argument("--optimizer", choices=["pso", "cmaes"], default="pso")
     f.add_argument("--compare", action="store_true", help="also run the other optimizer for the report")
