@@ -38,6 +38,8 @@ setup(
         "Pillow>=9.0",
         "PyYAML>=6.0",
         "tqdm>=4.60",
+        # SURF for the feature-match table (absent from every PyPI OpenCV wheel; MIT).
+        "mahotas>=1.4.19",
     ],
     extras_require={
         # ROS 2 Kilted from PyPI wheels; inside a sourced ROS 2 workspace these come from /opt/ros.

@@ -1,6 +1,7 @@
 """The ``uw-sil`` command: the core library's offline tools on ROS 2 bags.
 
     uw-sil synth --out trial.mcap [--frames N] [--seed S] [--params a_r=0.4,...] [--storage mcap|sqlite3]
+                 [--effects NAME[=mild|strong],...]
     uw-sil info trial.mcap
     uw-sil fit --bag trial.mcap [--frames K] [--optimizer pso|cmaes] [--color-model rgb|hsv] [--channels HSV]
                [--out fit.yaml] [--report DIR]
@@ -68,7 +69,7 @@ def cmd_synth(args) -> int:
     # The bag writer removes a partial bag when rendering fails or is interrupted; the truth sidecar
     # is written only after the bag is complete.
     truth = synthesize_trial(out, n_frames=args.frames, seed=args.seed, camera=camera, storage=args.storage,
-                             fog=args.fog, start_m=args.start, end_m=args.end,
+                             fog=args.fog, start_m=args.start, end_m=args.end, effects=args.effects,
                              progress=_progress_bar(args.frames, "render"), overwrite=args.force, **kw)
     print(f"wrote bag {truth['bag']} ({args.frames} frames) and {truth_path(out)}")
     if args.contact_sheet:
@@ -206,6 +207,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--hfov", type=float, default=70.0, help="horizontal field of view in water [deg]")
     s.add_argument("--start", type=float, default=4.0, help="range at the start of the approach [m]")
     s.add_argument("--end", type=float, default=1.2, help="range at the end of the approach [m]")
+    s.add_argument("--effects", help="inject effects the base model lacks (recorded only in the truth sidecar): "
+                   "'NAME[=mild|strong],...' (bare NAME: strong; NAME.PARAM=value overrides), NAME one of "
+                   "artificial_light, forward_scatter, backscatter_coefficient, vignetting, sensor_noise, "
+                   "marine_snow, camera_response, unmodeled_geometry, pose_error")
     s.add_argument("--contact-sheet", help="also write a PNG contact sheet here")
     s.add_argument("--force", action="store_true", help="overwrite an existing bag")
     s.set_defaults(func=cmd_synth)

@@ -101,7 +101,7 @@ def load_truth(bag_path) -> dict:
 def synthesize_trial(out, n_frames: int = 20, seed: int = 0, params: UnderwaterParams = DEFAULT_TRUTH,
                      camera: Optional[CameraModel] = None, storage: Optional[str] = None, fog: str = "exp2",
                      noise: SensorNoise = SensorNoise(), model=None, start_m: float = 4.0, end_m: float = 1.2,
-                     rate_hz: float = 10.0, effects: Optional[list] = None, overwrite: bool = False,
+                     rate_hz: float = 10.0, effects=None, overwrite: bool = False,
                      progress: Optional[Callable[[int, int], None]] = None) -> dict:
     """Render an approach, degrade it with ``params``, add noise, and write a ROS 2 bag plus truth sidecar.
 
@@ -110,9 +110,13 @@ def synthesize_trial(out, n_frames: int = 20, seed: int = 0, params: UnderwaterP
     out : path
         Bag to write (see :func:`uw_sil.bags.writer.write_trial` for the layout: ``trial.mcap`` becomes the bag
         directory ``trial/`` with ``trial/trial.mcap``; the truth goes to ``trial.truth.json``).
-    effects : list of callables, optional
-        Extra physics applied to each degraded float frame, ``effect(img, render) -> img`` (used by
-        the discrepancy experiments to conceal effects the model lacks). Recorded by name in the truth.
+    effects : str, dict or list, optional
+        Physics the base model lacks, injected into the recorded frames: effects of
+        :mod:`uw_sil.sim.effects` as ``"artificial_light=mild,vignetting"`` or ``{name: values or
+        severity}`` (rendered by :class:`uw_sil.sim.model.UnderwaterModel`; random effects draw from the
+        trial's seed), and/or, in a list, callables ``effect(img, render) -> img`` applied to each degraded
+        float frame. Recorded only in the truth sidecar: ``effects`` (names) and ``effect_params``
+        (``{name: {param: value}}`` of the registered ones).
     progress : callable(done, total), optional
 
     Returns
@@ -122,10 +126,19 @@ def synthesize_trial(out, n_frames: int = 20, seed: int = 0, params: UnderwaterP
     """
     from .records import Sample
     from .writer import write_trial
+    from ..sim.model import normalize_effects
     from ..sim.simcam import SimCamera
 
     if n_frames < 1:
         raise ValueError("n_frames must be >= 1")
+    if effects is None or isinstance(effects, (str, dict)):
+        effects = [effects] if effects else []
+    funcs = [e for e in effects if callable(e)]
+    model_effects = {}
+    for e in effects:
+        if not callable(e):
+            model_effects.update(normalize_effects(e))
+    model_effects = normalize_effects(model_effects)
     camera = camera or CameraModel.from_fov()
     rng = np.random.default_rng(seed)
     poses = approach_trajectory(n_frames, start_m, end_m, rng)
@@ -133,11 +146,12 @@ def synthesize_trial(out, n_frames: int = 20, seed: int = 0, params: UnderwaterP
     dt_ns = int(round(1e9 / rate_hz))
 
     def samples() -> Iterator:
-        with SimCamera(params, camera=camera, model=model, fog=fog) as sim:
+        # random effects get their own stream (the trial's seed, offset), so trials without them keep their noise
+        with SimCamera(params, camera=camera, model=model, fog=fog, effects=model_effects, seed=int(seed) + 7919) as sim:
             for k, T in enumerate(poses):
                 frame = sim.render(T)
                 img = frame.image
-                for eff in effects or ():
+                for eff in funcs:
                     img = eff(img, frame.render)
                 yield Sample(stamp_ns=t0_ns + k * dt_ns, image=add_sensor_noise(img, noise, rng), camera=camera,
                              pose=T, frame_id=camera.frame_id)
@@ -153,7 +167,8 @@ def synthesize_trial(out, n_frames: int = 20, seed: int = 0, params: UnderwaterP
         "n_frames": int(n_frames),
         "ranges_m": [float(np.linalg.norm(T[:3, 3])) for T in poses],
         "camera": asdict(camera),
-        "effects": [getattr(e, "name", getattr(e, "__name__", repr(e))) for e in (effects or [])],
+        "effects": list(model_effects) + [getattr(e, "name", getattr(e, "__name__", repr(e))) for e in funcs],
+        "effect_params": model_effects,
         "bag": str(bag_path),
     }
     write_text_atomic(truth_path(out), json.dumps(truth, indent=2))

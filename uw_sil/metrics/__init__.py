@@ -8,6 +8,7 @@ from importlib import import_module
 _EXPORTS = {
     "FSIMReference": "fsim", "HistogramReference": "histsim", "ThetaReference": "theta", "ThetaScores": "theta",
     "fsim": "fsim", "hsv_histogram_similarity": "histsim", "mean_theta": "theta", "phase_congruency": "fsim",
+    "uciqe": "uiqm", "uiqm": "uiqm",
 }
 __all__ = sorted(_EXPORTS)
 

@@ -19,6 +19,7 @@ import numpy as np
 
 from .camera import CameraModel
 from .optics import FOG_MODES, degrade
+from .model import UnderwaterModel, flat_to_effect_params, normalize_effects
 from .params import UnderwaterParams
 
 __all__ = ["SimFrame", "SimCamera"]
@@ -49,16 +50,22 @@ class SimCamera:
         Camera noise, standard deviation in grey levels (0..255 units), a fresh Gaussian realization per
         frame (the backward fit estimates it on the real frames). 0: noise-free images.
     seed : int, optional
-        Seed of the noise.
+        Seed of the noise (and of the random effects).
+    effects : dict or str, optional
+        Effects of :mod:`uw_sil.sim.effects` added to the underwater model (``{name: values or severity}``
+        or ``"artificial_light=mild,vignetting"``); live through :attr:`effects` and
+        :meth:`set_effect_params`. With effects the image comes from :class:`uw_sil.sim.model.UnderwaterModel`.
     """
 
     def __init__(self, params: Optional[UnderwaterParams] = None, camera: Optional[CameraModel] = None,
-                 model=None, fog: str = "exp2", noise_sigma: float = 0.0, seed: Optional[int] = None):
+                 model=None, fog: str = "exp2", noise_sigma: float = 0.0, seed: Optional[int] = None,
+                 effects=None):
         from .render import Renderer
 
         self.params = params or UnderwaterParams()
         self.fog = fog
         self.noise_sigma = noise_sigma
+        self.effects = effects
         self._rng = np.random.default_rng(seed)
         self.renderer = Renderer(model, camera=camera or CameraModel.from_fov())
 
@@ -84,6 +91,26 @@ class SimCamera:
         self._noise_sigma = sigma
 
     @property
+    def effects(self) -> dict:
+        """Active effects ``{name: {param: value}}`` (a copy; assign to change)."""
+        return {n: dict(v) for n, v in self._effects.items()}
+
+    @effects.setter
+    def effects(self, effects):
+        self._effects = normalize_effects(effects)
+
+    def set_effect_params(self, flat: dict):
+        """Set ``<effect>.<param>`` values of active effects at once (all checked before any is set)."""
+        merged = self.effects
+        for key, v in flat.items():
+            name = key.partition(".")[0]
+            if name not in merged:
+                raise ValueError(f"{key}: effect {name!r} is not active (active: {', '.join(merged) or 'none'})")
+        flat_all = {f"{n}.{k}": v for n, vals in merged.items() for k, v in vals.items()}
+        flat_all.update(flat)
+        self._effects = flat_to_effect_params(flat_all)
+
+    @property
     def camera(self) -> CameraModel:
         return self.renderer.camera
 
@@ -94,7 +121,11 @@ class SimCamera:
 
     def render(self, T_cam_panel) -> SimFrame:
         rr = self.renderer.render(T_cam_panel)
-        img = degrade(rr.rgb, rr.range, rr.depth, self.params.as_vector(), fog=self.fog)
+        if self._effects:
+            img = UnderwaterModel(self.params, self._effects, self.fog).degrade(
+                rr, self.camera, rng=self._rng, pose=T_cam_panel)
+        else:
+            img = degrade(rr.rgb, rr.range, rr.depth, self.params.as_vector(), fog=self.fog)
         if self._noise_sigma > 0:
             img += self._rng.standard_normal(img.shape, dtype=np.float32) * np.float32(self._noise_sigma / 255.0)
             np.clip(img, 0.0, 1.0, out=img)

@@ -1,0 +1,304 @@
+"""Effects of the extended underwater model: registry, parameters, presets, and each effect's signature."""
+import os
+
+import numpy as np
+import pytest
+
+os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
+
+from uw_sil.sim.camera import CameraModel
+from uw_sil.sim.params import UnderwaterParams
+from uw_sil.sim.render import Renderer
+from uw_sil.sim.scene import facing_pose
+from uw_sil.sim.effects import DEFAULT_SEVERITY, EFFECT_ORDER, EFFECTS, STAGES, get_effect, parse_effects
+from uw_sil.sim.model import UnderwaterModel, effect_params_to_flat, flat_to_effect_params
+
+NAMES = {"artificial_light", "forward_scatter", "backscatter_coefficient", "vignetting", "sensor_noise",
+         "marine_snow", "camera_response", "unmodeled_geometry", "pose_error"}
+P = UnderwaterParams(a=(0.35, 0.1, 0.08), b=(0.06, 0.3, 0.4), rho_f=0.05)
+
+
+@pytest.fixture(scope="module")
+def renderer():
+    r = Renderer(camera=CameraModel.from_fov(160, 120))
+    yield r
+    r.close()
+
+
+@pytest.fixture(scope="module")
+def frames(renderer):
+    poses = {"near": facing_pose(1.5), "mid": facing_pose(2.5, yaw=0.1), "far": facing_pose(3.5)}
+    return {k: (T, renderer.render(T)) for k, T in poses.items()}
+
+
+def degrade(effects, frame, cam, seed=0, params=P):
+    T, rr = frame
+    return UnderwaterModel(params, effects).degrade(rr, cam, rng=np.random.default_rng(seed), pose=T)
+
+
+# ---------------------------------------------------------------------------- registry and parameters
+
+
+def test_registry_names_and_stages():
+    assert set(EFFECTS) == NAMES
+    assert [STAGES.index(EFFECTS[n].stage) for n in EFFECT_ORDER] == sorted(STAGES.index(EFFECTS[n].stage)
+                                                                             for n in EFFECT_ORDER)
+    for name, e in EFFECTS.items():
+        assert e.name == name and get_effect(name) is e
+        assert e.stage in STAGES
+        assert set(e.severities) == {"mild", "strong"}
+        assert 1 <= len(e.params) <= 9
+        assert isinstance(e.invertible, bool) and isinstance(e.random_per_frame, bool)
+        for level in ("mild", "strong"):
+            e.check(e.severity(level))                       # presets lie inside the bounds
+
+
+@pytest.mark.parametrize("name", sorted(NAMES))
+def test_vector_bounds_round_trip(name):
+    e = EFFECTS[name]
+    lo, hi = e.bounds()
+    assert lo.shape == hi.shape == (len(e.params),) and np.all(lo < hi)
+    for level in ("mild", "strong"):
+        v = e.severity(level)
+        x = e.vector(v)
+        assert np.all((x >= lo) & (x <= hi))
+        assert e.from_vector(x) == v
+    x = lo + 0.37 * (hi - lo)
+    np.testing.assert_allclose(e.vector(e.from_vector(x)), x)
+    with pytest.raises(ValueError, match=name):
+        e.values({e.params[0].name: hi[0] + 1.0})
+    with pytest.raises(ValueError, match="no parameter"):
+        e.values({"bogus": 1.0})
+
+
+def test_parse_effects():
+    d = parse_effects("artificial_light=strong,vignetting")
+    assert list(d) == ["artificial_light", "vignetting"]            # composition order
+    assert d["artificial_light"] == EFFECTS["artificial_light"].severity("strong")
+    assert d["vignetting"] == EFFECTS["vignetting"].severity(DEFAULT_SEVERITY)
+    d = parse_effects("vignetting=mild, vignetting.k1=-0.4")
+    assert d["vignetting"]["k1"] == -0.4 and d["vignetting"]["k2"] == EFFECTS["vignetting"].severity("mild")["k2"]
+    assert parse_effects("") == {}
+    with pytest.raises(ValueError, match="fog_of_war"):
+        parse_effects("vignetting,fog_of_war=mild")
+    with pytest.raises(ValueError, match="'medium'.*vignetting|vignetting.*'medium'"):
+        parse_effects("vignetting=medium")
+    with pytest.raises(ValueError, match="k9"):
+        parse_effects("vignetting.k9=1")
+    with pytest.raises(ValueError, match="vignetting.k1"):
+        parse_effects("vignetting.k1=5")
+    with pytest.raises(ValueError, match="not a number"):
+        parse_effects("vignetting.k1=abc")
+
+
+def test_flat_params_round_trip():
+    effects = parse_effects("artificial_light=mild,sensor_noise=strong")
+    flat = effect_params_to_flat(effects)
+    assert flat["artificial_light.offset_x"] == effects["artificial_light"]["offset_x"]
+    assert len(flat) == len(EFFECTS["artificial_light"].params) + len(EFFECTS["sensor_noise"].params)
+    flat.update({"a_r": 0.3, "fog_mode": "exp2", "qos_overrides./x.depth": 3})      # ignored keys
+    assert flat_to_effect_params(flat) == effects
+    with pytest.raises(ValueError, match="nope"):
+        flat_to_effect_params({"vignetting.nope": 1.0})
+
+
+# ---------------------------------------------------------------------------- signatures
+
+
+def test_vignetting_radial_and_frame_invariant(frames, renderer):
+    cam = renderer.camera
+    spec = {"vignetting": {"k1": -0.5, "k2": 0.1}}
+    ratios = []
+    for key in ("near", "far"):
+        base = degrade({}, frames[key], cam)
+        ratios.append(degrade(spec, frames[key], cam) / base)
+    np.testing.assert_allclose(ratios[0], ratios[1], rtol=1e-5)           # same in every frame, any range
+    V = ratios[0][..., 1]
+    np.testing.assert_allclose(V, V[::-1, ::-1], rtol=1e-4)               # symmetric about the centre
+    assert V[60, 80] > 0.999 and abs(V[0, 0] - (1 - 0.5 + 0.1)) < 0.02    # 1 at the centre, 1+k1+k2 at corners
+
+
+def test_artificial_light_multiplicative_and_falling_with_distance(frames, renderer):
+    cam = renderer.camera
+    lamp = {"offset_x": 0.3, "offset_y": 0.0, "balance": 0.5, "half_angle": 1.2, "fill": 0.0, "veil": 0.0,
+            "power": 0.3}                                              # nothing saturates
+    gains = {}
+    for key in ("near", "far"):
+        T, rr = frames[key]
+        model = UnderwaterModel(P, {"artificial_light": lamp})
+        base = UnderwaterModel(P).degrade(rr, cam)
+        img = model.degrade(rr, cam)
+        water = ~np.isfinite(rr.range)
+        np.testing.assert_array_equal(img[water], base[water])            # no veil: open water unaffected
+        # multiplicative on the radiance: (I - B) scales by the illumination
+        tr = np.exp(-np.asarray(P.a)[None, None] * rr.range[..., None]) * np.exp(-(P.rho_f * rr.depth) ** 2)[..., None]
+        Bk = np.asarray(P.b) * (1 - tr)
+        plate = (np.abs(rr.depth - float(T[2, 3])) < 2e-3) & (np.hypot(*np.mgrid[-59.5:60.5, -79.5:80.5]) < 6)
+        assert plate.sum() > 20                                           # the plate's front face near the centre
+        g = (img - Bk)[plate].sum(axis=0) / (base - Bk)[plate].sum(axis=0)
+        gains[key] = g[:2]                                                # yellow paint: no blue to measure
+    def on_axis(d):                      # two lamps at (+-0.3, 0, 0) lighting the plate point (0, 0, d)
+        R = np.hypot(d, 0.3)
+        beam = np.exp(-np.log(2) * (np.arctan2(0.3, d) / 1.2) ** 2)
+        return beam * (d / R) / R ** 2 * np.exp(-np.asarray(P.a[:2]) * R)
+    np.testing.assert_allclose(gains["far"] / gains["near"], on_axis(3.5) / on_axis(1.5), rtol=0.03)
+    assert gains["far"][0] < gains["far"][1]                             # red suffers more on the lamp path
+
+
+def test_artificial_light_veil_on_lamp_side(frames, renderer):
+    cam = renderer.camera
+    spec = {"artificial_light": {"offset_x": 0.6, "balance": 0.0, "fill": 1.0, "veil": 0.05, "toe_in": 0.2}}
+    T, rr = frames["far"]
+    diff = degrade(spec, frames["far"], cam) - degrade({}, frames["far"], cam)
+    water = ~np.isfinite(rr.range)
+    assert (diff[water] > 0).all()                                        # additive light in open water
+    right = diff[:, 100:][water[:, 100:]].mean()
+    left = diff[:, :60][water[:, :60]].mean()
+    assert right > 1.2 * left                                             # skewed towards the lamp (+x)
+
+
+def _hf_energy(img, mask):
+    import cv2
+    lap = cv2.Laplacian(img.mean(-1).astype(np.float32), cv2.CV_32F)
+    return float((lap[mask] ** 2).mean())
+
+
+def test_forward_scatter_loses_more_high_frequencies_at_range(frames, renderer):
+    cam = renderer.camera
+    spec = {"forward_scatter": {"strength": 0.3, "width": 10.0, "tail": 0.3}}
+    kept = {}
+    for key in ("near", "far"):
+        T, rr = frames[key]
+        inner = np.isfinite(rr.range)
+        import cv2
+        inner = cv2.erode(inner.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+        kept[key] = _hf_energy(degrade(spec, frames[key], cam), inner) / _hf_energy(degrade({}, frames[key], cam), inner)
+    assert kept["near"] < 1 and kept["far"] < kept["near"]
+
+
+def test_marine_snow_sparse_positive_new_every_frame(frames, renderer):
+    cam = renderer.camera
+    spec = {"marine_snow": "strong"}
+    base = degrade({}, frames["mid"], cam)
+    a = degrade(spec, frames["mid"], cam, seed=1)
+    b = degrade(spec, frames["mid"], cam, seed=2)
+    a2 = degrade(spec, frames["mid"], cam, seed=1)
+    np.testing.assert_array_equal(a, a2)                                  # reproducible with a seed
+    d = a - base
+    assert d.min() >= -1e-6                                               # bright particles only
+    changed = (d.max(-1) > 10 / 255).mean()
+    assert 0 < changed < 0.05                                             # sparse
+    assert not np.array_equal(a, b)                                       # new particles every frame
+
+
+def test_sensor_noise_signal_dependent_and_fixed_pattern(frames, renderer):
+    cam = renderer.camera
+    grey = UnderwaterParams(a=(0.0, 0.0, 0.0), b=(0.5, 0.5, 0.5), rho_f=0.0)
+    T, rr = frames["near"]
+    spec = {"sensor_noise": {"shot": 1.0, "read": 1.0, "corr": 0.0, "fpn": 0.0}}
+    base = degrade({}, frames["near"], cam, params=grey)
+    noise = degrade(spec, frames["near"], cam, seed=3, params=grey) - base
+    lum = base.mean(-1)
+    dark, bright = lum < 0.2, lum > 0.6
+    assert dark.sum() > 50 and bright.sum() > 50
+    assert noise[bright].std() > 1.5 * noise[dark].std()                  # variance grows with intensity
+    fpn = {"sensor_noise": {"shot": 0.0, "read": 0.0, "fpn": 0.02}}
+    np.testing.assert_array_equal(degrade(fpn, frames["near"], cam, seed=1),
+                                  degrade(fpn, frames["near"], cam, seed=2))   # fixed pattern: same every frame
+    assert not np.array_equal(degrade(spec, frames["near"], cam, seed=1), degrade(spec, frames["near"], cam, seed=2))
+
+
+def test_camera_response_is_a_function_of_intensity(frames, renderer):
+    cam = renderer.camera
+    base = degrade({}, frames["near"], cam)
+    img = degrade({"camera_response": "strong"}, frames["near"], cam)
+    v = EFFECTS["camera_response"].severity("strong")
+    g = np.array([v["gain_r"], v["gain_g"], v["gain_b"]])
+    expect = v["black"] + (1 - v["black"]) * np.clip(base * g, 0, 1) ** (1 / v["gamma"])
+    np.testing.assert_allclose(img, expect, atol=2e-6)
+
+
+def test_backscatter_coefficient_changes_objects_not_water(frames, renderer):
+    cam = renderer.camera
+    T, rr = frames["mid"]
+    d = degrade({"backscatter_coefficient": "strong"}, frames["mid"], cam) - degrade({}, frames["mid"], cam)
+    water = ~np.isfinite(rr.range)
+    assert np.abs(d[water]).max() == 0
+    assert np.abs(d[~water]).mean() > 0.005
+
+
+def test_pose_error_shifts_the_image(frames, renderer):
+    cam = renderer.camera
+    T, rr = frames["mid"]
+    assert np.array_equal(degrade({"pose_error": {}}, frames["mid"], cam), degrade({}, frames["mid"], cam))
+    tx = 0.05
+    model = UnderwaterModel(P, {"pose_error": {"tx": tx}})
+    pm = model.prepare(rr, cam, pose=T)
+    terms, _, prep = pm._terms(P.as_vector(), model.effect_vector(), seed=None, restoring=True)
+    hit0, hit1 = np.isfinite(rr.range), prep.geom.hit
+    u0 = np.nonzero(hit0)[1].mean()
+    u1 = np.nonzero(hit1)[1].mean()
+    expect = cam.fx * tx / np.median(rr.depth[hit0])                      # points move by +t in the camera
+    assert abs((u1 - u0) - expect) < 0.6
+    Dm = np.eye(4)
+    Dm[0, 3] = tx
+    truth = renderer.render(Dm @ T)                                      # rendered at the true pose
+    assert (hit1 != np.isfinite(truth.range)).mean() < 0.3 * (hit0 != np.isfinite(truth.range)).mean()
+    np.testing.assert_allclose(prep.geom.pose, np.block([[np.eye(3), np.array([[tx], [0], [0]])], [0, 0, 0, 1]]) @ T)
+
+
+def test_unmodeled_geometry_adds_a_floor_below(frames, renderer):
+    cam = renderer.camera
+    T, rr = frames["far"]
+    model = UnderwaterModel(P, {"unmodeled_geometry": "strong"})
+    pm = model.prepare(rr, cam, pose=T)
+    terms, _, prep = pm._terms(P.as_vector(), model.effect_vector(), seed=None, restoring=True)
+    floor = prep.geom.labels == 2
+    rows = np.nonzero(floor)[0]
+    assert floor.mean() > 0.1 and rows.min() > cam.cy                     # below the horizon of a level camera
+    assert (prep.geom.labels[np.isfinite(rr.range)] == 1).all()           # the panel stays in front
+    with pytest.raises(ValueError, match="pose"):
+        model.degrade(rr, cam)
+
+
+@pytest.mark.parametrize("name", sorted(NAMES))
+def test_mild_subtle_strong_stronger(name, frames, renderer):
+    cam = renderer.camera
+    base = degrade({}, frames["mid"], cam)
+    mild = np.abs(degrade({name: "mild"}, frames["mid"], cam, seed=4) - base).mean()
+    strong = np.abs(degrade({name: "strong"}, frames["mid"], cam, seed=4) - base).mean()
+    assert 0 < mild < strong
+
+
+# ---------------------------------------------------------------------------- synthetic trials
+
+
+def test_synth_injects_effects_recorded_only_in_truth(tmp_path, capsys):
+    import json
+
+    from uw_sil.bags.reader import read_samples
+    from uw_sil.cli import build_parser, main
+
+    help_text = " ".join(a.help or "" for a in build_parser()._subparsers._group_actions[0].choices["synth"]._actions)
+    assert all(name in help_text for name in NAMES)
+    common = ["--frames", "2", "--width", "160", "--height", "120", "--seed", "3"]
+    assert main(["synth", "--out", str(tmp_path / "a.mcap"), *common]) == 0
+    assert main(["synth", "--out", str(tmp_path / "b.mcap"), *common,
+                 "--effects", "vignetting=strong,marine_snow=mild,marine_snow.density=200"]) == 0
+    truth = json.loads((tmp_path / "b.truth.json").read_text())
+    assert truth["effects"] == ["marine_snow", "vignetting"]
+    assert truth["effect_params"]["vignetting"] == EFFECTS["vignetting"].severity("strong")
+    assert truth["effect_params"]["marine_snow"]["density"] == 200
+    assert json.loads((tmp_path / "a.truth.json").read_text())["effects"] == []
+    a = list(read_samples(tmp_path / "a.mcap"))
+    b = list(read_samples(tmp_path / "b.mcap"))
+    assert len(a) == len(b) == 2
+    np.testing.assert_array_equal(a[0].pose, b[0].pose)
+    ia, ib = a[0].image.astype(float), b[0].image.astype(float)
+    assert ib[0, 0].sum() < ia[0, 0].sum() - 20                          # vignetted corner
+    meta = (tmp_path / "b" / "metadata.yaml").read_text()
+    assert "vignetting" not in meta and "marine_snow" not in meta        # nothing of it in the bag
+    capsys.readouterr()
+    assert main(["synth", "--out", str(tmp_path / "c.mcap"), *common, "--effects", "vignetting,fog_of_war"]) == 1
+    assert "fog_of_war" in capsys.readouterr().err
+    assert not (tmp_path / "c").exists()

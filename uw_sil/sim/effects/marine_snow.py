@@ -1,0 +1,112 @@
+"""Marine snow: sparse bright particles in the water, lit by the vehicle's lamps, new in every frame.
+
+Particles (aggregates of ``size`` mm mean diameter, log-normal spread) are placed uniformly in the
+camera's viewing volume between 0.15 m and 4 m at ``density`` per cubic metre (deep sea: 0.1-10 per
+litre, of which only the lit, near ones show). A particle in front of the scene adds the light it
+scatters towards the camera::
+
+    A_c = brightness * lit_c(X) * exp(-a_c z)                    (peak radiance of its image)
+
+with ``lit`` the lamp irradiance at the particle: the vehicle lamps of ``artificial_light`` when that
+effect is active, otherwise a camera-mounted lamp (Gaussian beam, half-angle 0.7 rad, ``1/z^2`` from
+1 m, ``exp(-a z)`` on the way out). Its image is a Gaussian blob of the particle's projected size
+(at least 0.5 px; smaller particles add proportionally less light), splatted with sub-pixel weights and
+blurred per size class. Particles behind the scene surface are hidden. The light is added to the veil
+term, so vignetting and the camera response act on it. Signature: sparse, positive, heavy-tailed
+outliers that do not persist between frames, concentrated in the lit volume. Not invertible.
+"""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from .base import Effect, EffectParam
+
+Z_MIN, Z_MAX = 0.15, 4.0
+MAX_PARTICLES = 200_000
+_SIGMA_BINS = np.array([0.5, 1.0, 2.0, 4.0, 8.0], np.float32)
+
+
+def default_lit(X: np.ndarray, a: np.ndarray) -> np.ndarray:
+    """Irradiance (M, 3) of a camera-mounted lamp at points X (M, 3): Gaussian beam, 1/z^2 from 1 m."""
+    z = np.maximum(X[:, 2], 1e-3)
+    r = np.linalg.norm(X, axis=1)
+    theta = np.arccos(np.clip(z / np.maximum(r, 1e-6), -1, 1))
+    beam = np.exp(-np.log(2.0) * (theta / 0.7) ** 2)
+    return (np.minimum(1.0 / (r * r), 25.0) * beam)[:, None] * np.exp(-np.outer(r, a))
+
+
+class MarineSnow(Effect):
+    name = "marine_snow"
+    stage = "medium"
+    invertible = False
+    random_per_frame = True
+    summary = "sparse lit particles between camera and scene, new every frame, brighter/denser in the light"
+    params = (
+        EffectParam("density", 0.0, 0.0, 3000.0, "1/m^3", "particles per cubic metre of water"),
+        EffectParam("brightness", 0.6, 0.0, 3.0, "", "peak radiance of a fully resolved particle at unit irradiance"),
+        EffectParam("size", 2.0, 0.3, 10.0, "mm", "mean particle diameter"),
+    )
+    severities = {
+        "mild": {"density": 60.0, "brightness": 0.6, "size": 1.5},
+        "strong": {"density": 400.0, "brightness": 1.0, "size": 3.0},
+    }
+
+    def is_identity(self, values):
+        return values["density"] == 0 or values["brightness"] == 0
+
+    def draws(self, values):
+        return not self.is_identity(values)
+
+    def apply(self, terms, values, rng):
+        if rng is None or self.is_identity(values):
+            return
+        snow = self.particles(terms, values, rng)
+        if snow is not None:
+            terms.add_veil(snow)
+
+    def particles(self, terms, values, rng):
+        cam = terms.camera
+        h, w = terms.shape
+        fx, fy, cx, cy = float(cam.fx), float(cam.fy), float(cam.cx), float(cam.cy)
+        volume = (Z_MAX ** 3 - Z_MIN ** 3) / 3.0 * (w / fx) * (h / fy)
+        n = int(min(rng.poisson(values["density"] * volume), MAX_PARTICLES))
+        if n == 0:
+            return None
+        u = rng.uniform(-0.5, w - 0.5, n)
+        v = rng.uniform(-0.5, h - 0.5, n)
+        z = np.cbrt(Z_MIN ** 3 + rng.uniform(0, 1, n) * (Z_MAX ** 3 - Z_MIN ** 3))
+        diam = values["size"] * 1e-3 * rng.lognormal(0.0, 0.5, n)
+        iu = np.clip(np.rint(u).astype(np.int64), 0, w - 1)
+        iv = np.clip(np.rint(v).astype(np.int64), 0, h - 1)
+        vis = z < terms.geom.depth[iv, iu]                      # depth is inf on water
+        if not vis.any():
+            return None
+        u, v, z, diam = u[vis], v[vis], z[vis], diam[vis]
+        X = np.stack([(u - cx) / fx * z, (v - cy) / fy * z, z], axis=1)
+        a = terms.a.astype(float)
+        lit = terms.lamps.irradiance(X, a) if terms.lamps is not None else default_lit(X, a)
+        amp = values["brightness"] * lit * np.exp(-np.outer(z, a))           # (M, 3) peak radiance
+        d_px = fx * diam / z
+        sigma = np.maximum(0.5, d_px / 2.8)
+        energy = amp * (np.pi / 4.0 * d_px * d_px)[:, None]                  # radiance x area (px^2)
+        k = np.clip(np.rint(np.log2(sigma / 0.5)).astype(np.int64), 0, len(_SIGMA_BINS) - 1)
+        out = np.zeros((3, h, w), np.float32)
+        x0 = np.floor(u).astype(np.int64)
+        y0 = np.floor(v).astype(np.int64)
+        fx_, fy_ = u - x0, v - y0
+        for b in np.unique(k):
+            sel = k == b
+            acc = np.zeros((3, h * w), np.float64)
+            for dx, dy, wt in ((0, 0, (1 - fx_) * (1 - fy_)), (1, 0, fx_ * (1 - fy_)),
+                               (0, 1, (1 - fx_) * fy_), (1, 1, fx_ * fy_)):
+                xx, yy = x0[sel] + dx, y0[sel] + dy
+                ok = (xx >= 0) & (xx < w) & (yy >= 0) & (yy < h)
+                idx = (yy * w + xx)[ok]
+                for c in range(3):
+                    acc[c] += np.bincount(idx, weights=(energy[sel, c] * wt[sel])[ok], minlength=h * w)
+            sb = float(_SIGMA_BINS[b])
+            for c in range(3):
+                plane = acc[c].reshape(h, w).astype(np.float32)
+                out[c] += cv2.GaussianBlur(plane, (0, 0), sb, borderType=cv2.BORDER_CONSTANT)
+        return out

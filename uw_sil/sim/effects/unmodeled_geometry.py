@@ -1,0 +1,146 @@
+"""Unmodeled geometry: a seafloor the scene model lacks, seen below and behind the panel.
+
+A plane in the panel frame (y up) at height ``floor_y`` (the plate's bottom edge is at y = -0.35 m;
+:func:`uw_sil.sim.scene.add_seafloor` puts it 0.5 m below the model), tilted by ``tilt`` about the panel
+x axis (positive: rising towards the front), with the sandy texture of
+:func:`~uw_sil.sim.scene.seafloor_texture` (2 m tile), its contrast about the mean colour scaled by
+``contrast`` (0: uniform mud) and its albedo by ``albedo``, shaded like the renderer
+(``0.3 + 0.7 cos`` of the normal against the optical axis). Intersected analytically with every viewing
+ray (needs the pose ``T_cam_panel``); it replaces water pixels and surfaces behind it and gets label 2.
+The texture is sampled from a mip level matched to the pixel footprint. (The panel's stand posts of
+``add_seafloor`` are not added.) Signature: structure where the simulation says water, growing toward
+the image bottom, plus range/colour changes. ``restore`` treats the floor as an object.
+"""
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+
+from .base import Effect, EffectParam
+
+TILE = 2.0          # m per texture repetition
+TEX_SIZE = 512
+SHADE_AMBIENT = 0.3
+Z_FAR = 100.0
+_mips: list = []
+
+
+def _texture_mips() -> list:
+    if not _mips:
+        from ..scene import seafloor_texture
+        tex = seafloor_texture(size=TEX_SIZE, seed=0).astype(np.float32) / 255.0
+        level = tex
+        while True:
+            _mips.append(np.pad(level, ((1, 1), (1, 1), (0, 0)), mode="wrap"))
+            if level.shape[0] <= 8:
+                break
+            level = cv2.resize(level, (level.shape[1] // 2, level.shape[0] // 2), interpolation=cv2.INTER_AREA)
+    return _mips
+
+
+def _texture_mean() -> np.ndarray:
+    return _texture_mips()[-1][1:-1, 1:-1].reshape(-1, 3).mean(axis=0).astype(np.float32)
+
+
+def _sample(img, mx, my) -> np.ndarray:
+    """Bilinear samples (M, 3) of ``img`` at 1-D pixel coordinates (remap wants 2-D maps < 32767 wide)."""
+    m = mx.size
+    cols = 1024
+    rows = -(-m // cols)
+    pad = rows * cols - m
+    mx2 = np.pad(mx, (0, pad)).reshape(rows, cols)
+    my2 = np.pad(my, (0, pad)).reshape(rows, cols)
+    out = cv2.remap(img, mx2, my2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    return out.reshape(-1, 3)[:m]
+
+
+class UnmodeledGeometry(Effect):
+    name = "unmodeled_geometry"
+    stage = "geometry"
+    invertible = True
+    random_per_frame = False
+    summary = "a textured seafloor plane below the panel (height, tilt, albedo)"
+    params = (
+        EffectParam("floor_y", -0.85, -5.0, -0.36, "m", "seafloor height in the panel frame (y up)"),
+        EffectParam("tilt", 0.0, -0.3, 0.3, "rad", "slope about the panel x axis (> 0 rises towards the front)"),
+        EffectParam("albedo", 1.0, 0.02, 1.5, "", "multiplier of the sand texture's albedo (mean ~0.5)"),
+        EffectParam("contrast", 1.0, 0.0, 1.5, "", "texture contrast about its mean (0: uniform mud, 1: sand)"),
+    )
+    severities = {
+        "mild": {"floor_y": -5.0, "tilt": 0.0, "albedo": 1.5, "contrast": 0.3},    # far, luminance ~ water
+        "strong": {"floor_y": -0.85, "tilt": 0.0, "albedo": 1.0, "contrast": 1.0},  # as add_seafloor
+    }
+
+    def is_identity(self, values):
+        return False                       # listed = the floor is there
+
+    def apply(self, terms, values, rng):
+        terms.geom = self.add_floor(terms.geom, values)
+
+    def add_floor(self, geom, values):
+        if geom.pose is None:
+            raise ValueError("unmodeled_geometry needs the camera pose T_cam_panel (pass pose=...)")
+        T = geom.pose
+        R, t = T[:3, :3], T[:3, 3]
+        tilt = values["tilt"]
+        n_p = np.array([0.0, math.cos(tilt), math.sin(tilt)])
+        e1 = np.array([1.0, 0.0, 0.0])
+        e2 = np.array([0.0, -math.sin(tilt), math.cos(tilt)])
+        p0 = np.array([0.0, values["floor_y"], 0.0])
+        n_c = R @ n_p
+        p0_c = R @ p0 + t
+        num = float(n_c @ p0_c)                # < 0: the camera is above the floor
+        if num >= 0:
+            return geom
+        xt, yt = geom.xt, geom.yt
+        den = np.float32(n_c[0]) * xt + np.float32(n_c[1]) * yt + np.float32(n_c[2])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            z = np.where(den < 0, np.float32(num) / den, np.float32(np.inf)).astype(np.float32)
+        sel = (z > 0) & (z < Z_FAR) & (~geom.hit | (z < geom.depth))
+        if not sel.any():
+            return geom
+        zs = z[sel]
+        xs = (np.broadcast_to(xt, geom.shape)[sel]) * zs
+        ys = (np.broadcast_to(yt, geom.shape)[sel]) * zs
+        Xc = np.stack([xs, ys, zs], axis=1)
+        rng_m = np.linalg.norm(Xc, axis=1)
+        Pp = (Xc - t) @ R                       # panel frame
+        tu = (Pp @ e1) / TILE
+        tv = -(Pp @ e2) / TILE
+        # mip level from the pixel footprint on the floor
+        cos_inc = np.abs(Xc @ n_c) / np.maximum(rng_m, 1e-6)
+        foot = rng_m / (float(geom.camera.fx) * np.maximum(cos_inc, 0.05))          # m per pixel
+        mips = _texture_mips()
+        lev = np.clip(np.rint(np.log2(np.maximum(foot * TEX_SIZE / TILE, 1.0))), 0, len(mips) - 1).astype(int)
+        col = np.empty((zs.size, 3), np.float32)
+        for L in np.unique(lev):
+            m = lev == L
+            img = mips[L]
+            S = img.shape[0] - 2
+            mx = ((tu[m] % 1.0) * S - 0.5 + 1).astype(np.float32)
+            my = ((tv[m] % 1.0) * S - 0.5 + 1).astype(np.float32)
+            col[m] = _sample(img, mx, my)
+        shade = SHADE_AMBIENT + (1 - SHADE_AMBIENT) * max(0.0, -float(n_c[2]))
+        if values["contrast"] != 1:
+            mean = _texture_mean()
+            col = mean + np.float32(values["contrast"]) * (col - mean)
+        col = np.clip(col * np.float32(values["albedo"]), 0, 1) * np.float32(shade)
+
+        rgb = geom.rgb.copy()
+        rgb[sel] = col
+        depth = geom.depth.copy()
+        depth[sel] = zs
+        rng_arr = geom.range.copy()
+        rng_arr[sel] = rng_m
+        labels = geom.labels.copy()
+        labels[sel] = 2
+        part = geom.part_ids.astype(np.uint16, copy=True)
+        part[sel] = 0xFFFF
+        X = geom.X.copy()
+        X[sel] = Xc
+        normals = geom.normals.copy()
+        normals[sel] = n_c.astype(np.float32)
+        return geom.replace(rgb=rgb, depth=depth, range_m=rng_arr, labels=labels, part_ids=part, X=X,
+                            normals=normals)
