@@ -40,6 +40,8 @@ setup(
         "tqdm>=4.60",
         # SURF for the feature-match table (absent from every PyPI OpenCV wheel; MIT).
         "mahotas>=1.4.19",
+        # campaign.parquet of `uw-sil batch`
+        "pyarrow>=14",
     ],
     extras_require={
         # ROS 2 Kilted from PyPI wheels; inside a sourced ROS 2 workspace these come from /opt/ros.
@@ -52,7 +54,9 @@ setup(
             "ros-kilted-std-msgs",
             "ros-kilted-rosgraph-msgs",
         ],
-        "test": ["pytest>=7"],
+        # `uw-sil batch --executor dask://HOST:PORT`
+        "dask": ["dask[distributed]>=2024.1"],
+        "test": ["pytest>=7", "dask[distributed]>=2024.1"],
     },
     zip_safe=True,
     maintainer="uw_sil developers",
@@ -66,6 +70,7 @@ setup(
             "sim_camera = uw_sil.nodes.sim_camera:main",
             "backward_fit = uw_sil.nodes.backward_fit:main",
             "bag_play = uw_sil.nodes.bag_play:main",
+            "enhancer = uw_sil.nodes.enhancer:main",
         ],
     },
 )

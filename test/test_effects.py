@@ -302,3 +302,66 @@ def test_synth_injects_effects_recorded_only_in_truth(tmp_path, capsys):
     assert main(["synth", "--out", str(tmp_path / "c.mcap"), *common, "--effects", "vignetting,fog_of_war"]) == 1
     assert "fog_of_war" in capsys.readouterr().err
     assert not (tmp_path / "c").exists()
+
+
+# ---------------------------------------------------------------------------- params YAML and sim_camera
+
+
+def test_params_yaml_carries_effects(tmp_path):
+    import yaml
+
+    from uw_sil.fit.backward import read_params_yaml, write_params_yaml
+
+    effects = parse_effects("artificial_light=mild,vignetting=strong")
+    path = write_params_yaml(tmp_path / "fit.yaml", P, fog="exp", noise_sigma=1.5, effects=effects)
+    ros = yaml.safe_load(path.read_text())["/**"]["ros__parameters"]
+    assert ros["effects"] == "artificial_light,vignetting" and ros["vignetting.k1"] == effects["vignetting"]["k1"]
+    back = read_params_yaml(path)
+    assert back["params"] == P and back["fog"] == "exp" and back["noise_sigma"] == 1.5
+    assert back["effects"] == effects
+    # nested form, a listed preset without values, and no effects at all
+    nested = {"sim_camera": {"ros__parameters": {**P.as_dict(), "effects": "vignetting,marine_snow=mild",
+                                                 "vignetting": {"k1": -0.3}}}}
+    (tmp_path / "n.yaml").write_text(yaml.safe_dump(nested))
+    got = read_params_yaml(tmp_path / "n.yaml")["effects"]
+    assert got["vignetting"]["k1"] == -0.3 and got["marine_snow"] == EFFECTS["marine_snow"].severity("mild")
+    write_params_yaml(tmp_path / "p.yaml", P)
+    assert read_params_yaml(tmp_path / "p.yaml")["effects"] == {}
+    nested["sim_camera"]["ros__parameters"]["vignetting"]["k7"] = 1.0
+    (tmp_path / "bad.yaml").write_text(yaml.safe_dump(nested))
+    with pytest.raises(ValueError, match="k7"):
+        read_params_yaml(tmp_path / "bad.yaml")
+
+
+def test_sim_camera_node_declares_effect_parameters(tmp_path, frames):
+    rclpy = pytest.importorskip("rclpy", reason="ROS 2 Python packages (the `ros` extra) are not installed")
+    from rclpy.context import Context
+    from rclpy.parameter import Parameter
+
+    from uw_sil.fit.backward import write_params_yaml
+    from uw_sil.nodes.sim_camera import SimCameraNode
+
+    effects = parse_effects("artificial_light=mild,vignetting=strong")
+    path = write_params_yaml(tmp_path / "fit.yaml", P, effects=effects)
+    ctx = Context()
+    rclpy.init(context=ctx, args=["--ros-args", "--params-file", str(path)], domain_id=1 + os.getpid() % 200)
+    node = None
+    try:
+        node = SimCameraNode(context=ctx, parameter_overrides=[Parameter("width", value=160),
+                                                               Parameter("height", value=120)])
+        assert node.sim.effects == effects                                # flat dotted names from the file
+        d = node.describe_parameter("artificial_light.offset_x")
+        assert d.read_only is False and d.floating_point_range[0].from_value == -1.5
+        assert node.describe_parameter("effects").read_only
+        assert not node.has_parameter("marine_snow.density")              # only listed effects
+        r = node.set_parameters([Parameter("vignetting.k1", value=-0.1)])[0]
+        assert r.successful and node.sim.effects["vignetting"]["k1"] == -0.1
+        r = node.set_parameters([Parameter("vignetting.k2", value=5.0)])[0]
+        assert not r.successful and node.sim.effects["vignetting"]["k2"] == effects["vignetting"]["k2"]
+        T, rr = frames["mid"]
+        want = UnderwaterModel(P, {**effects, "vignetting": {**effects["vignetting"], "k1": -0.1}})
+        np.testing.assert_array_equal(node.sim.render(T).image, want.degrade(rr, node.sim.camera, pose=T))
+    finally:
+        if node is not None:
+            node.destroy_node()
+        ctx.try_shutdown()

@@ -23,8 +23,9 @@ ALLOWED = {
     "viz": {"_shared"},
     "fit": {"sim", "metrics", "bags", "_shared", "viz"},
     "enhance": {"sim", "metrics", "bags", "_shared", "viz"},
+    "campaign": {"cli", "_shared"},   # runs the `uw-sil` commands per dive, reads the files they write
     "nodes": {"sim", "metrics", "bags", "fit", "enhance", "_shared", "viz"},
-    "cli": {"sim", "metrics", "bags", "fit", "enhance", "nodes", "_shared", "viz"},
+    "cli": {"sim", "metrics", "bags", "fit", "enhance", "nodes", "_shared", "viz", "campaign"},
     "": {"sim", "metrics", "bags", "fit", "enhance", "_shared", "viz"},
 }
 ROS_MODULES = {"rclpy", "rcl_interfaces", "sensor_msgs", "geometry_msgs", "std_msgs", "std_srvs", "rosgraph_msgs",

@@ -157,3 +157,11 @@ def test_simcam_with_effects(frame):
         assert sim.effects["vignetting"]["k1"] == -0.1                     # unchanged after a refused update
         sim.effects = None
         np.testing.assert_array_equal(sim.render(T).image, optics.degrade(rr.rgb, rr.range, rr.depth, P.as_vector()))
+
+
+def test_restore_result_unpacks_to_three(frame, renderer):
+    T, rr = frame
+    img = UnderwaterModel(P).degrade(rr, renderer.camera)
+    image, mask, fraction = UnderwaterModel(P, "forward_scatter=mild").restore(img, rr, renderer.camera)
+    res = UnderwaterModel(P, "forward_scatter=mild").restore(img, rr, renderer.camera)
+    assert res.skipped == ("forward_scatter",) and fraction == res.restored_fraction

@@ -5,7 +5,9 @@
     uw-sil info trial.mcap
     uw-sil fit --bag trial.mcap [--frames K] [--optimizer pso|cmaes] [--color-model rgb|hsv] [--channels HSV]
                [--out fit.yaml] [--report DIR]
-    uw-sil demo [--out-dir out]          # synth -> contact sheet -> fit -> report
+    uw-sil enhance --bag trial.mcap --params fit.yaml --out enhanced.mcap [--method sil|dcp|udcp] [--b-from-frame]
+    uw-sil features --bag trial.mcap --params fit.yaml [--frames I,J] [--csv table.csv] [--report DIR]
+    uw-sil demo [--out-dir out]          # synth -> contact sheet -> fit -> enhance -> features -> report
 
 Exit codes: 0 success, 1 bad input (message on stderr), 130 interrupted (no partial outputs left).
 """
@@ -173,6 +175,112 @@ def cmd_fit(args) -> int:
     return 0
 
 
+def _lazy_progress(desc: str):
+    """A progress callback ``(done, total)`` that opens its bar on the first call (total known then)."""
+    state = {}
+
+    def update(done, total):
+        if "bar" not in state:
+            state["bar"] = _progress_bar(total, desc)
+        state["bar"](done, total)
+    return update
+
+
+def _sil_model(args):
+    """(UnderwaterModel, fog) from --params (required for SIL), or (None, None)."""
+    from .enhance.sil import load_model_yaml
+
+    if args.params is None:
+        if args.method == "sil":
+            raise ValueError("--params fit.yaml is required for --method sil (the fitted model)")
+        return None, None
+    model = load_model_yaml(args.params)
+    return model, model.fog
+
+
+def cmd_enhance(args) -> int:
+    from .enhance.bagtool import ENHANCED_TOPIC, enhance_bag
+
+    params, fog = _sil_model(args)
+    res = enhance_bag(args.bag, args.out, params, method=args.method, fog=fog, t0=args.t0,
+                      b_from_frame=args.b_from_frame, overwrite=args.force, progress=_lazy_progress("enhance"),
+                      interrupted=_raise_if_interrupted)
+    _raise_if_interrupted()
+    print(f"wrote bag {res.path}: {ENHANCED_TOPIC} ({args.method}) for {res.frames_out} of {res.frames_in} frames "
+          f"next to {res.copied} recorded messages; mean restored fraction {res.restored_fraction_mean:.3f}")
+    if res.frames_out < res.frames_in:
+        print(f"{res.frames_in - res.frames_out} frames had no pose within tolerance and were not enhanced",
+              file=sys.stderr)
+    if res.skipped_topics:
+        print(f"not copied (message types unknown to ROS 2 Kilted): {', '.join(res.skipped_topics)}", file=sys.stderr)
+    return 0
+
+
+def _frame_pair(text, bag) -> tuple:
+    from .bags import open_bag
+    from .enhance.bagtool import default_feature_frames
+
+    if text is None:
+        return default_feature_frames(open_bag(bag).topics["/camera/image_raw"].count or 0)
+    try:
+        i, j = (int(v) for v in text.split(","))
+    except ValueError:
+        raise ValueError(f"--frames must be two frame numbers I,J, got {text!r}") from None
+    if i == j or min(i, j) < 0:
+        raise ValueError(f"--frames needs two different frames >= 0, got {text!r}")
+    return i, j
+
+
+def cmd_features(args) -> int:
+    from .enhance.bagtool import enhance_all, feature_rows, frames_with_geometry, quality_markdown, quality_rows
+    from .enhance.features import table_csv, table_markdown
+
+    args.method = "sil"
+    params, fog = _sil_model(args)
+    i, j = _frame_pair(args.frames, args.bag)
+    shown = [i, j]
+    if args.report:                                 # Fig. 4 also shows a far frame of the approach
+        far = max(0, min(i, j) // 3)
+        if far not in shown:
+            shown.append(far)
+    frames = frames_with_geometry(args.bag, shown)
+    _raise_if_interrupted()
+    images = enhance_all(frames, params, fog, t0=args.t0, b_from_frame=args.b_from_frame)
+    rows = feature_rows(frames[:2], images[:2], args.descriptors)
+    _raise_if_interrupted()
+    md = table_markdown(rows)
+    print(f"feature matches between frames #{i} and #{j} of {args.bag}:\n")
+    print(md)
+    verified = {(r["pair"], r["descriptor"]): r["verified_matches"] for r in rows}
+    descs = list(dict.fromkeys(r["descriptor"] for r in rows))
+    for other in ("raw", "DCP", "UDCP"):
+        k = sum(verified[("SIL", d)] > verified[(other, d)] for d in descs)
+        print(f"SIL has more verified matches than {other} for {k} of {len(descs)} descriptors")
+    if args.csv:
+        table_csv(rows, args.csv)
+        print(f"wrote {args.csv}")
+    if args.report:
+        from .enhance.report import write_forward_report
+
+        quality = qmd = None
+        try:
+            from .bags.synth import load_truth
+
+            load_truth(args.bag)
+            quality = quality_rows(frames, images)
+            qmd = quality_markdown(quality)
+            print(qmd)
+        except FileNotFoundError:
+            pass                                    # a real trial: no clean radiance to compare with
+        page = write_forward_report(args.report, frames, images, rows, md, quality, qmd or "",
+                                    descriptor=args.figure_descriptor,
+                                    title=f"uw_sil forward half: {Path(args.bag).name}",
+                                    notes=f"SIL with {args.params} (t0 = {args.t0}); DCP/UDCP: He et al. 2011 / "
+                                          f"Drews et al. 2013 (patch 15, omega 0.95, t0 0.1, guided filter r 60).")
+        print(f"wrote report {page}")
+    return 0
+
+
 def cmd_demo(args) -> int:
     out = Path(args.out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -186,8 +294,48 @@ def cmd_demo(args) -> int:
     if args.compare:
         fit_args.append("--compare")
     cmd_fit(build_parser().parse_args(fit_args))
+    # forward half: enhance the trial with the fitted model, then Table 2 / Fig. 4-5 into the same report
+    cmd_enhance(build_parser().parse_args(["enhance", "--bag", str(bag), "--params", str(out / "fit.yaml"), "--out",
+                                           str(out / "enhanced.mcap"), "--force"]))
+    cmd_features(build_parser().parse_args(["features", "--bag", str(bag), "--params", str(out / "fit.yaml"),
+                                            "--csv", str(out / "features.csv"), "--report", str(out / "report")]))
     print(f"demo done in {time.perf_counter() - t0:.0f} s: open {out / 'report' / 'index.html'}")
     return 0
+
+
+def cmd_batch(args) -> int:
+    from tqdm import tqdm
+
+    from .campaign import find_dives, make_executor, run_campaign, summary_line
+
+    dives = find_dives(args.bags)
+    steps = [s.strip() for s in args.steps.split(",") if s.strip()]
+    options = {"frames": args.frames, "stride": args.stride, "optimizer": args.optimizer, "max_iter": args.max_iter,
+               "seed": args.seed, "report": not args.no_report}
+    executor, close = (None, None) if args.executor == "local" else make_executor(args.executor, args.jobs)
+    print(f"campaign of {len(dives)} dives, steps {','.join(steps)}, executor {args.executor} -> {args.out}",
+          file=sys.stderr)
+    bar = tqdm(total=len(dives), unit="dive", file=sys.stderr, disable=None)
+
+    def progress(done, total, row):
+        bar.update(1)
+        state = "already done" if row.get("skipped") else row.get("status")
+        bar.set_postfix_str(f"{row['dive']}: {state}")
+        if bar.disable or row.get("status") != "ok":       # a line per dive in logs and pipes
+            tqdm.write(f"[{done}/{total}] {row['dive']}: {state}"
+                       + (f" ({row.get('error')})" if row.get("status") != "ok" else ""), file=sys.stderr)
+
+    try:
+        rows = run_campaign(dives, args.out, steps, options, executor=executor, jobs=args.jobs, force=args.force,
+                            retry_failed=args.retry_failed, progress=progress)
+    finally:
+        bar.close()
+        if close:
+            close()
+    print(summary_line(rows))
+    print(f"wrote {Path(args.out) / 'campaign.parquet'} and {Path(args.out) / 'campaign.csv'}")
+    failed = sum(r.get("status") != "ok" for r in rows)
+    return min(failed, 100)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -246,7 +394,31 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--report", help="write PNG figures and index.html here")
     f.set_defaults(func=cmd_fit)
 
-    d = sub.add_parser("demo", help="synthesize a trial, fit it and write the report")
+    e = sub.add_parser("enhance", help="dehaze a recorded trial with the fitted model (SIL), or DCP/UDCP, "
+                                       "into a new bag with /camera/image_enhanced")
+    e.add_argument("--bag", required=True)
+    e.add_argument("--params", help="fitted parameters (uw-sil fit --out fit.yaml); required for --method sil")
+    e.add_argument("--out", required=True, help="bag to write, e.g. enhanced.mcap (directory enhanced/)")
+    e.add_argument("--method", choices=["sil", "dcp", "udcp"], default="sil")
+    e.add_argument("--b-from-frame", action="store_true",
+                   help="re-estimate the background b on every frame from its water pixels")
+    e.add_argument("--t0", type=float, default=0.1, help="lowest transmission divided by (gain cap 1/t0)")
+    e.add_argument("--force", action="store_true", help="overwrite an existing output bag")
+    e.set_defaults(func=cmd_enhance)
+
+    ft = sub.add_parser("features", help="feature matches between two frames: raw, DCP, UDCP and SIL (Table 2)")
+    ft.add_argument("--bag", required=True)
+    ft.add_argument("--params", required=True, help="fitted parameters (fit.yaml)")
+    ft.add_argument("--frames", help="two frame numbers I,J (default: at 55%% and 70%% of the trial)")
+    ft.add_argument("--descriptors", nargs="+", help="default: ORB BRIEF SIFT SURF KAZE AKAZE")
+    ft.add_argument("--csv", help="write the table as CSV here")
+    ft.add_argument("--report", help="write Fig. 4 / Fig. 5 analogues and forward.html into this directory")
+    ft.add_argument("--figure-descriptor", default="SIFT", help="descriptor of the Fig. 5 picture")
+    ft.add_argument("--b-from-frame", action="store_true")
+    ft.add_argument("--t0", type=float, default=0.1)
+    ft.set_defaults(func=cmd_features)
+
+    d = sub.add_parser("demo", help="synthesize a trial, fit it, enhance it and write the report")
     d.add_argument("--out-dir", default="out")
     d.add_argument("--frames", type=int, default=30)
     d.add_argument("--seed", type=int, default=0)
@@ -255,6 +427,27 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--compare", action="store_true", default=True)
     d.add_argument("--no-compare", dest="compare", action="store_false")
     d.set_defaults(func=cmd_demo)
+
+    b = sub.add_parser("batch", help="a campaign: fit (and diagnose, enhance) every dive of a folder of bags",
+                       description="Runs the per-dive commands over many bags, on this machine (a process pool) "
+                                   "or on a Dask cluster; resumable; a results table campaign.parquet/.csv. "
+                                   "Exit status: the number of dives that failed (0: all ok).")
+    b.add_argument("--bags", nargs="+", required=True,
+                   help="glob pattern(s), quoted, e.g. 'dives/**/*.mcap' (** is recursive), or bag paths")
+    b.add_argument("--out", required=True, help="results folder: <dive>/ per dive and campaign.parquet/.csv")
+    b.add_argument("--steps", default="fit", help="comma-separated, in order: fit, diagnose, enhance (default fit)")
+    b.add_argument("--executor", default="local",
+                   help="'local' (process pool, spawn) or dask://HOST:PORT (a Dask scheduler; uw-sil[dask])")
+    b.add_argument("--jobs", type=int, default=None, help="local workers (default: number of cores)")
+    b.add_argument("--force", action="store_true", help="redo every dive, also those already done")
+    b.add_argument("--retry-failed", action="store_true", help="redo the dives that failed last time")
+    b.add_argument("--frames", type=int, default=None, help="K frames per fit (default: uw-sil fit's)")
+    b.add_argument("--stride", type=int, default=None)
+    b.add_argument("--optimizer", choices=["pso", "cmaes"], default="cmaes")
+    b.add_argument("--max-iter", type=int, default=None)
+    b.add_argument("--seed", type=int, default=0)
+    b.add_argument("--no-report", action="store_true", help="skip the per-dive HTML/PNG reports")
+    b.set_defaults(func=cmd_batch)
 
     from .nodes.launcher import add_commands as add_launch_commands  # `uw-sil launch`, `uw-sil play`
     add_launch_commands(sub)
@@ -276,7 +469,7 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print("interrupted: no output written", file=sys.stderr)
         return 130
-    except (ValueError, FileNotFoundError) as e:
+    except (ValueError, FileNotFoundError, FileExistsError) as e:
         if interrupted:   # Ctrl-C inside a third-party import or callback may surface as another error
             print("interrupted: no output written", file=sys.stderr)
             return 130

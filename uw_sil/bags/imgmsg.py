@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = ["SUPPORTED_ENCODINGS", "image_to_rgb", "rgb_to_image_fields", "depth_to_image_fields", "compressed_to_rgb",
-           "message_bytes"]
+           "message_bytes", "image_to_depth", "image_to_mono"]
 
 # encoding -> (channels, order of R, G, B among the channels); mono is replicated.
 _LAYOUT = {
@@ -151,6 +151,37 @@ def depth_to_image_fields(depth: np.ndarray) -> dict:
     h, w = d.shape
     return {"height": int(h), "width": int(w), "encoding": "32FC1", "is_bigendian": 0, "step": 4 * int(w),
             "data": np.ascontiguousarray(d, dtype="<f4").tobytes()}
+
+
+def _rows(msg, bytes_per_pixel: int, what: str) -> tuple:
+    h, w, step = int(msg.height), int(msg.width), int(msg.step)
+    if h <= 0 or w <= 0:
+        raise ValueError(f"{what} has no pixels: {w}x{h}")
+    if step < w * bytes_per_pixel:
+        raise ValueError(f"{what} step {step} is shorter than a row of {w} pixels ({w * bytes_per_pixel} bytes)")
+    buf = message_bytes(msg.data)
+    if buf.size != step * h:
+        raise ValueError(f"{what} data has {buf.size} bytes, expected step*height = {step}*{h} = {step * h}")
+    return buf.reshape(h, step)[:, : w * bytes_per_pixel], h, w
+
+
+def image_to_depth(msg) -> np.ndarray:
+    """(H, W) float32 depth in metres of a ``32FC1`` ``sensor_msgs/Image`` (REP 118; inverse of
+    :func:`depth_to_image_fields`), either byte order, native-order copy. Other encodings: ValueError."""
+    if str(msg.encoding) != "32FC1":
+        raise ValueError(f"depth image encoding is {msg.encoding!r}, expected 32FC1 (REP 118 metres)")
+    rows, h, w = _rows(msg, 4, "depth image")
+    dt = ">f4" if int(msg.is_bigendian) else "<f4"
+    return np.ascontiguousarray(rows).view(dt).reshape(h, w).astype(np.float32)
+
+
+def image_to_mono(msg) -> np.ndarray:
+    """(H, W) uint8 of a ``mono8`` / ``8UC1`` ``sensor_msgs/Image`` (e.g. ``sim/mask`` labels); may share
+    memory with ``msg.data``. Other encodings: ValueError."""
+    if str(msg.encoding) not in ("mono8", "8UC1"):
+        raise ValueError(f"image encoding is {msg.encoding!r}, expected mono8 or 8UC1")
+    rows, _, _ = _rows(msg, 1, "mono image")
+    return rows
 
 
 def compressed_to_rgb(msg) -> np.ndarray:

@@ -50,6 +50,11 @@ def _looks_like_bag_dir(d: Path) -> bool:
         for f in d.iterdir())
 
 
+#: The layout rules as public names, for other writers of bags (:mod:`uw_sil.bags.augment`).
+bag_dir_and_storage = _bag_dir_and_storage
+looks_like_bag_dir = _looks_like_bag_dir
+
+
 def _check_sample(s: Sample, i: int) -> tuple[np.ndarray, np.ndarray]:
     if not isinstance(s, Sample):
         raise TypeError(f"sample {i} is a {type(s).__name__}, expected uw_sil.bags.Sample")

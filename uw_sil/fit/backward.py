@@ -30,7 +30,7 @@ from .._shared.fileio import write_text_atomic
 from ..sim.params import ParamSpace, UnderwaterParams
 
 __all__ = ["FitFrame", "FrameSelection", "FrameSelector", "select_frames", "BackwardObjective", "FitResult", "fit_frames",
-           "fit_bag", "write_params_yaml", "write_json_atomic", "DEFAULT_NODE_NAME"]
+           "fit_bag", "write_params_yaml", "read_params_yaml", "write_json_atomic", "DEFAULT_NODE_NAME"]
 
 DEFAULT_NODE_NAME = "/**"
 
@@ -477,15 +477,76 @@ def write_json_atomic(path, data) -> Path:
 
 
 def write_params_yaml(path, params: UnderwaterParams, node_name: str = DEFAULT_NODE_NAME, fog: str = "exp2",
-                      comment: str = "", noise_sigma: Optional[float] = None) -> Path:
+                      comment: str = "", noise_sigma: Optional[float] = None, effects: Optional[dict] = None) -> Path:
     """ROS 2 parameters file for the sim camera node (``--ros-args --params-file``), written atomically.
 
-    ``noise_sigma`` (grey levels), when given, is the camera noise the fit estimated on the real frames."""
+    ``noise_sigma`` (grey levels), when given, is the camera noise the fit estimated on the real frames.
+    ``effects`` (``{name: {param: value}}``, see :mod:`uw_sil.sim.effects`) adds the read-only ``effects``
+    list and one flat parameter ``<effect>.<param>`` per effect parameter."""
     import yaml
+
+    from ..sim.model import effect_params_to_flat, normalize_effects
 
     ros_params = {**params.as_dict(), "fog_mode": fog}
     if noise_sigma is not None:
         ros_params["noise_sigma"] = float(noise_sigma)
+    if effects:
+        effects = normalize_effects(effects)
+        ros_params["effects"] = ",".join(effects)
+        ros_params.update(effect_params_to_flat(effects))
     body = {node_name: {"ros__parameters": ros_params}}
     text = "".join(f"# {line}\n" for line in comment.splitlines()) + yaml.safe_dump(body, sort_keys=False)
     return write_text_atomic(path, text)
+
+
+def read_params_yaml(path, node_name: Optional[str] = None) -> dict:
+    """Read a parameters file of :func:`write_params_yaml` (or any sim_camera parameters file).
+
+    Takes the node entry ``node_name`` (default: the only one, or ``/**``). Effect parameters may be flat
+    (``vignetting.k1: -0.3``) or nested (``vignetting: {k1: -0.3}``) as ROS 2 accepts both; effects are
+    those in the ``effects`` list plus any with parameters in the file (parameters missing from the file
+    take the listed preset or the defaults, as ``sim_camera`` does).
+
+    Returns
+    -------
+    dict
+        ``params`` (UnderwaterParams), ``fog`` (str), ``noise_sigma`` (float or None), ``effects``
+        (``{name: {param: value}}``, composition order).
+    """
+    import yaml
+
+    from ..sim.effects import EFFECTS, get_effect
+    from ..sim.model import normalize_effects
+
+    doc = yaml.safe_load(Path(path).read_text()) or {}
+    if not isinstance(doc, dict) or not doc:
+        raise ValueError(f"{path}: not a ROS 2 parameters file")
+    if node_name is None:
+        node_name = next(iter(doc)) if len(doc) == 1 else DEFAULT_NODE_NAME
+    if node_name not in doc or not isinstance(doc[node_name], dict) or "ros__parameters" not in doc[node_name]:
+        raise ValueError(f"{path}: no 'ros__parameters' for node {node_name!r} (nodes: {', '.join(map(str, doc))})")
+    flat = {}
+
+    def walk(prefix, d):
+        for k, v in d.items():
+            key = f"{prefix}.{k}" if prefix else str(k)
+            if isinstance(v, dict):
+                walk(key, v)
+            else:
+                flat[key] = v
+
+    walk("", doc[node_name]["ros__parameters"])
+    params = UnderwaterParams.from_dict(flat)
+    effects = {}                    # as sim_camera reads its ``effects`` list: NAME (defaults) or NAME=mild|strong
+    for item in (s.strip() for s in str(flat.get("effects", "")).split(",")):
+        if item:
+            name, _, level = (t.strip() for t in item.partition("="))
+            effects[name] = get_effect(name).severity(level) if level else get_effect(name).defaults()
+    for key, v in flat.items():                     # then the values in the file
+        name, dot, param = key.partition(".")
+        if dot and name in EFFECTS:
+            effects.setdefault(name, EFFECTS[name].defaults())[param] = v
+    effects = normalize_effects(effects)
+    noise = flat.get("noise_sigma")
+    return {"params": params, "fog": str(flat.get("fog_mode", "exp2")),
+            "noise_sigma": None if noise is None else float(noise), "effects": effects}

@@ -11,7 +11,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional
 
-__all__ = ["NodeSpec", "BACKWARD_INPUTS", "backward_graph", "ros_args", "command_line", "share_file", "GRAPHS"]
+__all__ = ["NodeSpec", "BACKWARD_INPUTS", "backward_graph", "forward_graph", "sil_graph", "ros_args", "command_line",
+           "share_file", "GRAPHS"]
 
 
 @dataclass
@@ -91,7 +92,74 @@ def backward_graph(sim_params: Optional[str] = None, bag: Optional[str] = None, 
     return nodes
 
 
-GRAPHS = {"backward": backward_graph}
+#: sim_camera when a bag is replayed into the forward half: render every pose (a live camera keeps the
+#: default queue of 1, the newest pose, for latency).
+REPLAY_SIM_CAMERA = {"queue_size": 100}
+
+#: Topic the enhancer subscribes to once sim_camera listens for poses: a replayed bag waits for it.
+FORWARD_INPUT = "/camera/image_raw"
+
+
+def _enhancer(method: str, b_from_frame: bool, idle_exit: bool) -> NodeSpec:
+    params = {"method": method, "b_from_frame": bool(b_from_frame), "sim_node": "sim_camera"}
+    if idle_exit:
+        params["idle_timeout"] = IDLE_TIMEOUT
+    return NodeSpec("enhancer", "enhancer", parameters=params, required=idle_exit)
+
+
+def _bag_play(bag, rate, loop, wait_for_topics, wait_for_nodes=()) -> NodeSpec:
+    params = {"bag": str(bag), "rate": float(rate), "loop": bool(loop), "wait_for_topics": list(wait_for_topics),
+              "delay": 0.5}
+    if wait_for_nodes:
+        params["wait_for_nodes"] = list(wait_for_nodes)
+    return NodeSpec("bag_play", "bag_play", parameters=params)
+
+
+def forward_graph(sim_params: Optional[str] = None, bag: Optional[str] = None, rate: float = 1.0, loop: bool = False,
+                  keep_running: bool = False, method: str = "sil", b_from_frame: bool = False) -> list:
+    """sim_camera + enhancer (+ bag_play replaying a field trial when ``bag`` is given): the forward half.
+
+    ``sim_params`` is the fitted parameters file (``uw-sil fit --out fit.yaml``; default
+    ``config/sim_camera.yaml``); the enhancer follows ``sim_camera``'s parameters. With a bag (and not
+    ``keep_running`` or ``loop``) the enhancer exits ``IDLE_TIMEOUT`` s after the last frame and, being
+    ``required``, ends the graph. ``bag_play`` starts once its camera and pose publishers have matched the
+    enhancer and sim_camera (the enhancer subscribes once it has sim_camera's parameters), so no frame is
+    lost to start-up.
+    """
+    sim_params = sim_params or str(share_file("config", "sim_camera.yaml"))
+    idle_exit = bool(bag) and not keep_running and not loop
+    nodes = [NodeSpec("sim_camera", "sim_camera", param_files=[sim_params],
+                      parameters=dict(REPLAY_SIM_CAMERA) if bag else {}),
+             _enhancer(method, b_from_frame, idle_exit)]
+    if bag:
+        # without wait_for_nodes bag_play waits for a *matched* reader on each topic: the enhancer on the
+        # camera, sim_camera on the poses (both are the only readers in this graph)
+        nodes.append(_bag_play(bag, rate, loop, [FORWARD_INPUT, BACKWARD_INPUTS[2]]))
+    return nodes
+
+
+def sil_graph(sim_params: Optional[str] = None, bag: Optional[str] = None, output_yaml: str = "", frames: int = 3,
+              optimizer: str = "pso", rate: float = 1.0, loop: bool = False, max_iter: Optional[int] = None,
+              stride: Optional[int] = None, keep_running: bool = False, method: str = "sil",
+              b_from_frame: bool = False) -> list:
+    """Both halves: sim_camera + backward_fit + enhancer (+ bag_play): the fit re-parameterizes sim_camera,
+    and through its parameter events the enhancer.
+
+    With a bag the graph ends when the fit is done (as the backward graph), unless ``keep_running``; frames
+    enhanced before then use ``sim_params``. ``bag_play`` starts once both backward_fit and the enhancer
+    subscribe to the camera.
+    """
+    nodes = [n for n in backward_graph(sim_params=sim_params, bag=bag, output_yaml=output_yaml, frames=frames,
+                                       optimizer=optimizer, rate=rate, loop=loop, max_iter=max_iter, stride=stride,
+                                       keep_running=keep_running) if n.name != "bag_play"]
+    nodes.append(_enhancer(method, b_from_frame, idle_exit=False))
+    if bag:
+        nodes[0].parameters.update(REPLAY_SIM_CAMERA)
+        nodes.append(_bag_play(bag, rate, loop, [FORWARD_INPUT], ["backward_fit", "enhancer"]))
+    return nodes
+
+
+GRAPHS = {"backward": backward_graph, "forward": forward_graph, "sil": sil_graph}
 
 
 def _param_value(v) -> str:

@@ -214,10 +214,15 @@ def _signal_all(procs, sig):
 def cmd_launch(args) -> int:
     build = _graph.GRAPHS[args.graph]
     absolute = lambda p: str(Path(p).resolve()) if p else p  # noqa: E731  (nodes log absolute paths)
-    specs = build(sim_params=absolute(args.sim_params), bag=absolute(args.bag),
-                  output_yaml=absolute(args.output_yaml) or "",
-                  frames=args.frames, optimizer=args.optimizer, rate=args.rate, loop=args.loop,
-                  max_iter=args.max_iter, stride=args.stride, keep_running=args.keep_running)
+    options = dict(sim_params=absolute(args.sim_params), bag=absolute(args.bag),
+                   output_yaml=absolute(args.output_yaml) or "",
+                   frames=args.frames, optimizer=args.optimizer, rate=args.rate, loop=args.loop,
+                   max_iter=args.max_iter, stride=args.stride, keep_running=args.keep_running,
+                   method=args.method, b_from_frame=args.b_from_frame)
+    import inspect
+
+    accepted = inspect.signature(build).parameters     # each graph takes the options it has
+    specs = build(**{k: v for k, v in options.items() if k in accepted})
     return launch(specs)
 
 
@@ -256,6 +261,10 @@ def add_commands(subparsers) -> None:
     la.add_argument("--sim-params", help="sim_camera parameters YAML (default config/sim_camera.yaml)")
     la.add_argument("--keep-running", action="store_true",
                     help="with --bag: keep the graph running after the fit, until Ctrl-C")
+    la.add_argument("--method", choices=["sil", "dcp", "udcp"], default="sil",
+                    help="forward/sil graphs: the enhancer's method")
+    la.add_argument("--b-from-frame", action="store_true",
+                    help="forward/sil graphs: re-estimate the background on every frame from its water")
     la.set_defaults(func=cmd_launch)
 
     pl = subparsers.add_parser("play", help="replay a bag with its recorded timing (what `ros2 bag play` does)")

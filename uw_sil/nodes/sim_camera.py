@@ -13,6 +13,10 @@ Parameters (live, validated; set with ``ros2 param set`` or the parameter servic
     ``fog_mode`` (exp2|exp|none), ``noise_sigma`` (camera noise in grey levels); read-only: ``model_path``, ``width``, ``height``, ``hfov_deg``,
     ``queue_size`` (1: poses arriving while a frame renders replace each other, so the newest is
     rendered next; raise it to render every pose of a burst, at the cost of latency).
+    ``effects`` (read-only string, default ""): effects of :mod:`uw_sil.sim.effects` added to the model,
+    ``"NAME[=mild|strong],..."``; for each listed effect its parameters ``<effect>.<param>`` are declared
+    (live, with ranges; initial values: the preset if given, else the effect's defaults; a params file
+    overrides them).
 """
 from __future__ import annotations
 
@@ -26,6 +30,8 @@ from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import CameraInfo, Image
 
 from ..sim.camera import CameraModel
+from ..sim.effects import get_effect
+from ..sim.model import flat_to_effect_params
 from ..bags.imgmsg import depth_to_image_fields, rgb_to_image_fields
 from ..sim.params import RGB_NAMES, UNITS, UnderwaterParams
 from ..sim.simcam import SimCamera
@@ -58,10 +64,14 @@ class SimCameraNode(Node):
         self.declare_parameter("height", 480, ro)
         self.declare_parameter("hfov_deg", 70.0, ro)
         self.declare_parameter("queue_size", 1, ro)
+        self.declare_parameter("effects", "", ParameterDescriptor(
+            read_only=True, description="effects added to the model: NAME[=mild|strong],... (uw_sil.sim.effects)"))
+        self._effect_names = self._declare_effects(self.get_parameter("effects").value)
         g = self.get_parameter
         camera = CameraModel.from_fov(g("width").value, g("height").value, g("hfov_deg").value)
         self.sim = SimCamera(self._params_from(dict()), camera=camera, model=g("model_path").value or None,
-                             fog=g("fog_mode").value, noise_sigma=g("noise_sigma").value)
+                             fog=g("fog_mode").value, noise_sigma=g("noise_sigma").value,
+                             effects=self._effects_from(dict()))
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
         self.pub_image = self.create_publisher(Image, "sim/image_raw", qos_profile_sensor_data)
@@ -75,6 +85,29 @@ class SimCameraNode(Node):
         self.create_subscription(PoseStamped, "panel/pose", self._on_pose, g("queue_size").value)
         self.frames = 0
 
+    def _declare_effects(self, spec: str) -> list:
+        names = []
+        for item in (s.strip() for s in str(spec).split(",")):
+            if not item:
+                continue
+            name, eq, level = item.partition("=")
+            eff = get_effect(name.strip())
+            values = eff.severity(level.strip()) if eq else eff.defaults()
+            for p in eff.params:
+                self.declare_parameter(f"{eff.name}.{p.name}", float(values[p.name]), ParameterDescriptor(
+                    description=f"{eff.name}: {p.description}" + (f" [{p.unit}]" if p.unit else ""),
+                    floating_point_range=[FloatingPointRange(from_value=float(p.lo), to_value=float(p.hi), step=0.0)]))
+            names.append(eff.name)
+        return names
+
+    def _effects_from(self, changes: dict) -> dict:
+        flat = {}
+        for name in self._effect_names:
+            for p in get_effect(name).param_names:
+                key = f"{name}.{p}"
+                flat[key] = float(changes.get(key, self.get_parameter(key).value))
+        return flat_to_effect_params(flat)
+
     def _params_from(self, changes: dict) -> UnderwaterParams:
         d = {n: float(changes.get(n, self.get_parameter(n).value)) for n in RGB_NAMES}
         return UnderwaterParams.from_dict(d)
@@ -83,6 +116,7 @@ class SimCameraNode(Node):
         changes = {p.name: p.value for p in params}
         try:
             new = self._params_from(changes)
+            effects = self._effects_from(changes)
             fog = changes.get("fog_mode", self.sim.fog)
             self.sim.fog = fog
             if "noise_sigma" in changes:
@@ -90,6 +124,7 @@ class SimCameraNode(Node):
         except (ValueError, TypeError) as e:
             return SetParametersResult(successful=False, reason=str(e))
         self.sim.params = new
+        self.sim.effects = effects
         return SetParametersResult(successful=True)
 
     def _on_camera_info(self, msg: CameraInfo):

@@ -1,5 +1,7 @@
 """The simulated camera: pinhole camera and poses, the panel scene, the headless renderer, the
-underwater image model with its parameters, camera noise, and :class:`SimCamera` that puts them together.
+underwater image model with its parameters, camera noise, the effects the base model leaves out
+(:mod:`.effects`) with the extended model (:class:`UnderwaterModel`), and :class:`SimCamera` that puts
+them together.
 
 Import rules: imports nothing of uw_sil but :mod:`uw_sil._shared` (no metrics, fit, bags, ROS).
 Heavy modules (pyrender, trimesh) load only when their names are first used.
@@ -11,6 +13,7 @@ _EXPORTS = {
     "PreparedRender": "optics", "RenderResult": "render", "Renderer": "render", "SimCamera": "simcam",
     "SimFrame": "simcam", "UnderwaterParams": "params", "degrade": "optics", "estimate_noise_sigma": "noise",
     "facing_pose": "scene", "look_at": "transforms", "matrix_to_pose": "transforms", "pose_to_matrix": "transforms",
+    "UnderwaterModel": "model", "Geometry": "model", "parse_effects": "effects", "EFFECTS": "effects",
 }
 __all__ = sorted(_EXPORTS)
 

@@ -36,14 +36,13 @@ Parameters of the effects as ROS parameters: ``<effect>.<param>`` (:func:`effect
 from __future__ import annotations
 
 import weakref
-from dataclasses import dataclass
 from typing import NamedTuple, Optional
 
 import numpy as np
 
 from .effects import EFFECTS, EFFECT_ORDER, get_effect, parse_effects
 from .effects.base import ModelTerms, effect_rng
-from .optics import FOG_MODES
+from .optics import FOG_MODES, invert_transmission
 from .params import UnderwaterParams, validate_rgb_params
 
 __all__ = ["Geometry", "ModelTerms", "UnderwaterModel", "PreparedModel", "RestoreResult",
@@ -257,11 +256,20 @@ def flat_to_effect_params(flat: dict) -> dict:
 # ============================================================================ the model
 
 
-class RestoreResult(NamedTuple):
+class _RestoreFields(NamedTuple):
     image: np.ndarray            # (H, W, 3) float32 in [0, 1]
     restored_mask: np.ndarray    # (H, W) bool: object pixels that were restored
     restored_fraction: float
-    skipped: tuple = ()          # active effects that restore could not undo
+
+
+class RestoreResult(_RestoreFields):
+    """``(image, restored_mask, restored_fraction)``, plus the attribute ``skipped`` (not unpacked): the
+    active effects restore could not undo."""
+
+    def __new__(cls, image, restored_mask, restored_fraction, skipped=()):
+        self = super().__new__(cls, image, restored_mask, restored_fraction)
+        self.skipped = tuple(skipped)
+        return self
 
 
 class UnderwaterModel:
@@ -390,14 +398,14 @@ class UnderwaterModel:
                 I = eff.invert(I, terms, v)
         b = terms.b[:, None, None]
         TD = terms.T_D
-        den = np.maximum(TD, np.float32(t0))
-        if terms.T_B is TD and terms.veil is None:
-            ip = b + (I - b) / den
-        else:
+        if terms.T_B is not TD or terms.veil is not None:
+            # Backscatter beyond the base model's b (1 - T_D) (beta_B != beta_D, the lamps' veil) is
+            # subtracted first; what remains is the base model, inverted by the one inverse of Eq. 1.
             B = b * (1 - terms.T_B)
             if terms.veil is not None:
                 B = B + terms.veil
-            ip = b + (I - B - b * TD) / den
+            I = I - (B - b * (1 - TD))
+        ip = invert_transmission(I, b, TD, t0)
         if terms.illum is not None:
             gain = np.minimum(np.float32(1.0) / np.maximum(terms.illum, np.float32(1e-12)), np.float32(max_gain))
             ip = ip * gain
@@ -475,6 +483,7 @@ class PreparedModel:
         self._other = [e for e in self.effects if e.stage != "geometry"]
         self._base_prep = None
         self._cache = {}
+        self._scratch = None
         self.base_vector = model.params.as_vector()
         self.effect_vector = model.effect_vector()
 
@@ -529,7 +538,12 @@ class PreparedModel:
             if e.stage == "radiance" and not (restoring and e.random_per_frame):
                 e.apply(terms, v, rng_for(e))
         h, w = self.shape
-        T = np.empty((3, h, w), np.float32)
+        if restoring:
+            T = np.empty((3, h, w), np.float32)
+        else:                                        # one buffer per evaluator (results are copied out)
+            if self._scratch is None:
+                self._scratch = np.empty((3, h, w), np.float32)
+            T = self._scratch
         for c in range(3):
             t = T[c]
             np.multiply(prep.r, a[c], out=t)        # same arithmetic as uw_sil.optics.PreparedRender
@@ -570,7 +584,8 @@ class PreparedModel:
             if e.stage == "sensor":
                 e.apply(terms, v, effect_rng(seed, e.name) if e.random_per_frame else None)
         I = terms.I
-        np.clip(I, 0.0, 1.0, out=I)
+        if active:                                   # the base model stays in [0, 1] by itself
+            np.clip(I, 0.0, 1.0, out=I)
         return I
 
     # ------------------------------------------------------------------ call

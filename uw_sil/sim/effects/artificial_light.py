@@ -26,7 +26,7 @@ Lamp-lit backscatter (single scattering, the veil in the water, brightest where 
 
 along the viewing ray ``s d`` of pixel ``p`` up to the surface (or 12 m in open water), with
 Henyey-Greenstein phase ``g = 0.9`` normalized to its backscatter value. The integral is evaluated on a
-coarse grid of viewing directions (at most 64 columns) and 32 log-spaced distances (cumulative
+coarse grid of viewing directions (at most 48 columns) and 32 log-spaced distances (cumulative
 trapezoid), then interpolated per pixel at its own range (trilinear), so silhouettes stay sharp.
 
 Signature: a smooth multiplicative log-residual on objects, slope about -2 against ln R plus a term in
@@ -45,7 +45,7 @@ from .base import Effect, EffectParam
 R0 = 2.0                   # m, reference distance of the normalization
 HG_G = 0.9                 # Henyey-Greenstein asymmetry of the veil
 S_MIN, S_MAX, N_S = 0.02, 12.0, 32
-GRID_W = 64
+GRID_W = 48
 LN2 = math.log(2.0)
 
 
@@ -113,9 +113,18 @@ class ArtificialLight(Effect):
 
     def prepare(self, geom, camera):
         h, w = geom.shape
+        hit = geom.hit
+        X = geom.X
+        n = geom.normals
+        st = {"hit": hit}
+        # surface terms as planes: |X - L|^2 = |X|^2 - 2 X.L + |L|^2, n.(X - L) = n.X - n.L
+        st["X"] = [np.ascontiguousarray(X[..., k]) for k in range(3)]
+        st["n"] = [np.ascontiguousarray(n[..., k]) for k in range(3)]
+        st["X2"] = np.einsum("hwk,hwk->hw", X, X)
+        st["nX"] = np.einsum("hwk,hwk->hw", n, X)
+        # veil: a coarse grid of unit viewing directions and log-spaced distances along them
         gw = min(w, GRID_W)
-        gh = max(2, int(round(gw * h / w))) if h > 1 else 1
-        gh = min(gh, h)
+        gh = min(h, max(2, int(round(gw * h / w)))) if h > 1 else 1
         xs = np.linspace(0, w - 1, gw)
         ys = np.linspace(0, h - 1, gh)
         d = np.empty((gh, gw, 3), np.float32)
@@ -123,83 +132,90 @@ class ArtificialLight(Effect):
         d[..., 1] = ((ys - camera.cy) / camera.fy)[:, None]
         d[..., 2] = 1.0
         d /= np.linalg.norm(d, axis=-1, keepdims=True)
+        st["d"] = [np.ascontiguousarray(d[..., k]) for k in range(3)]
         s = np.geomspace(S_MIN, S_MAX, N_S).astype(np.float32)
+        st["s"] = s
+        st["ds"] = np.diff(s)
         # per-pixel position in the (direction grid, distance) volume, for trilinear lookup
-        r = np.where(geom.hit, geom.range, np.float32(S_MAX))
+        r = np.where(hit, geom.range, np.float32(S_MAX))
         ls = np.log(np.clip(r, S_MIN, S_MAX)) - math.log(S_MIN)
         pos = ls / (math.log(S_MAX / S_MIN) / (N_S - 1))
         j = np.clip(np.floor(pos).astype(np.int32), 0, N_S - 2)
-        frac = np.clip(pos - j, 0, 1).astype(np.float32)
+        st["frac"] = np.clip(pos - j, 0, 1).astype(np.float32)[..., None]
         ug = (np.arange(w, dtype=np.float32) * ((gw - 1) / max(w - 1, 1)))[None, :]
         vg = (np.arange(h, dtype=np.float32) * ((gh - 1) / max(h - 1, 1)))[:, None]
         tile = gw + 1
-        mapx_lo = (j * tile + ug).astype(np.float32)
-        mapx_hi = ((j + 1) * tile + ug).astype(np.float32)
-        mapy = np.broadcast_to(vg, (h, w)).astype(np.float32)
-        return {"dirs": d, "s": s, "frac": frac, "mapx_lo": mapx_lo, "mapx_hi": mapx_hi, "mapy": mapy,
-                "grid": (gh, gw)}
+        st["mapx_lo"] = (j * tile + ug).astype(np.float32)
+        st["mapx_hi"] = ((j + 1) * tile + ug).astype(np.float32)
+        st["mapy"] = np.broadcast_to(vg, (h, w)).astype(np.float32)
+        st["grid"] = (gh, gw)
+        return st
 
     # ------------------------------------------------------------------ per parameter set
 
-    def illumination(self, geom, rig: LampRig, a) -> np.ndarray:
+    def illumination(self, st, rig: LampRig, a) -> np.ndarray:
         """(3, H, W) relative illumination ``L`` (1 on pixels without a hit)."""
-        hit = geom.hit
-        X = geom.X
-        n = geom.normals
-        h, w = geom.shape
+        X, n = st["X"], st["n"]
+        h, w = st["X2"].shape
         E = np.zeros((3, h, w), np.float32)
         for l, wl in rig.weights:
-            v = X - rig.pos[l]
-            R2 = np.einsum("hwk,hwk->hw", v, v)
+            L, ax = rig.pos[l], rig.axis[l]
+            XL = X[0] * L[0] + X[1] * L[1] + X[2] * L[2]
+            R2 = st["X2"] - 2 * XL + np.float32(L @ L)
             R = np.sqrt(np.maximum(R2, np.float32(1e-4)))
-            cos_t = (v @ rig.axis[l]) / R
-            lamb = np.clip(-np.einsum("hwk,hwk->hw", n, v) / R, 0.0, 1.0)
-            g = np.float32(wl) * rig.beam(cos_t) * lamb * (np.float32(R0 * R0) / (R * R))
+            cos_t = (X[0] * ax[0] + X[1] * ax[1] + X[2] * ax[2] - np.float32(L @ ax)) / R
+            nL = n[0] * L[0] + n[1] * L[1] + n[2] * L[2]
+            lamb = np.clip((nL - st["nX"]) / R, 0.0, 1.0)        # n . (L - X) / R
+            g = np.float32(wl * R0 * R0) * rig.beam(cos_t) * lamb / (R * R)
             for c in range(3):
                 E[c] += g * np.exp(-np.float32(a[c]) * (R - np.float32(R0)))
-        L = np.float32(rig.fill) + np.float32((1 - rig.fill) * rig.power) * E
-        L[:, ~hit] = 1.0
-        return L
+        Lc = np.float32(rig.fill) + np.float32((1 - rig.fill) * rig.power) * E
+        Lc[:, ~st["hit"]] = 1.0
+        return Lc
 
-    def veil_field(self, state, rig: LampRig, a, strength: float, shape) -> np.ndarray:
+    def veil_field(self, st, rig: LampRig, a, strength: float) -> np.ndarray:
         """(3, H, W) lamp-lit backscatter."""
-        d, s = state["dirs"], state["s"]
-        gh, gw = state["grid"]
-        P = s[:, None, None, None] * d[None]                          # (K, gh, gw, 3)
+        d, s = st["d"], st["s"][:, None, None]
+        gh, gw = st["grid"]
         f = np.zeros((3, N_S, gh, gw), np.float32)
-        hg_norm = (1 + HG_G) ** 3
+        hg_norm = np.float32((1 + HG_G) ** 3)
         for l, wl in rig.weights:
-            v = P - rig.pos[l]
-            R = np.sqrt(np.maximum(np.einsum("kijc,kijc->kij", v, v), np.float32(1e-4)))
-            cos_t = (v @ rig.axis[l]) / R
-            cos_psi = -np.einsum("kijc,ijc->kij", v, d) / R           # incoming u = v/R, outgoing -d
-            hg = np.float32(hg_norm) / np.power(1 + HG_G * HG_G - 2 * HG_G * cos_psi, np.float32(1.5))
-            g = np.float32(wl) * rig.beam(cos_t) * hg / (R * R)
+            L, ax = rig.pos[l], rig.axis[l]
+            dL = d[0] * L[0] + d[1] * L[1] + d[2] * L[2]             # (gh, gw)
+            da = d[0] * ax[0] + d[1] * ax[1] + d[2] * ax[2]
+            R2 = s * s - 2 * s * dL + np.float32(L @ L)             # (K, gh, gw): |s d - L|^2
+            R = np.sqrt(np.maximum(R2, np.float32(1e-4)))
+            cos_t = (s * da - np.float32(L @ ax)) / R
+            cos_psi = (dL - s) / R                                  # incoming (s d - L)/R, outgoing -d
+            q = np.float32(1 + HG_G * HG_G) - np.float32(2 * HG_G) * cos_psi
+            hg = hg_norm / (q * np.sqrt(q))                          # HG(psi) / HG(pi)
+            g = np.float32(wl) * rig.beam(cos_t) * hg / R2.clip(1e-4)
             for c in range(3):
-                f[c] += g * np.exp(-np.float32(a[c]) * (R + s[:, None, None]))
-        ds = np.diff(s)[:, None, None]
-        C = np.zeros_like(f)
-        C[:, 1:] = np.cumsum(0.5 * (f[:, 1:] + f[:, :-1]) * ds, axis=1)
-        C *= np.float32(strength)
-        # atlas: distance layers side by side, each padded by one duplicated column; one padded row
+                f[c] += g * np.exp(-np.float32(a[c]) * (R + s))
+        # cumulative trapezoid along the distances, then into an atlas of distance layers side by side
+        # (each padded by one duplicated column, one padded row) for two bilinear lookups per pixel
+        inc = (f[:, 1:] + f[:, :-1]) * (np.float32(0.5 * strength) * st["ds"])[None, :, None, None]
+        inc = np.ascontiguousarray(inc.transpose(1, 2, 3, 0))
+        C = np.zeros((N_S, gh, gw, 3), np.float32)
+        for k in range(1, N_S):                                     # (np.cumsum is slower here)
+            np.add(C[k - 1], inc[k - 1], out=C[k])
         tile = gw + 1
         atlas = np.empty((gh + 1, N_S * tile, 3), np.float32)
-        Ck = np.moveaxis(C, 0, -1)                                    # (K, gh, gw, 3)
-        for k in range(N_S):
-            atlas[:gh, k * tile:k * tile + gw] = Ck[k]
-            atlas[:gh, k * tile + gw] = Ck[k][:, -1]
+        layers = atlas[:gh].reshape(gh, N_S, tile, 3)
+        layers[:, :, :gw] = C.transpose(1, 0, 2, 3)
+        layers[:, :, gw] = C[:, :, -1].transpose(1, 0, 2)
         atlas[gh] = atlas[gh - 1]
-        lo = cv2.remap(atlas, state["mapx_lo"], state["mapy"], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        hi = cv2.remap(atlas, state["mapx_hi"], state["mapy"], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        fr = state["frac"][..., None]
-        V = lo + fr * (hi - lo)
+        lo = cv2.remap(atlas, st["mapx_lo"], st["mapy"], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        hi = cv2.remap(atlas, st["mapx_hi"], st["mapy"], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        V = lo + st["frac"] * (hi - lo)
         return np.ascontiguousarray(np.moveaxis(V, 2, 0))
 
     def apply(self, terms, values, rng):
         rig = LampRig(values)
         terms.lamps = rig
         a = terms.a
+        st = terms.state[self.name]
         if values["fill"] != 1:
-            terms.multiply_illum(self.illumination(terms.geom, rig, a))
+            terms.multiply_illum(self.illumination(st, rig, a))
         if values["veil"] > 0:
-            terms.add_veil(self.veil_field(terms.state[self.name], rig, a, values["veil"], terms.shape))
+            terms.add_veil(self.veil_field(st, rig, a, values["veil"]))

@@ -95,18 +95,19 @@ class MarineSnow(Effect):
         x0 = np.floor(u).astype(np.int64)
         y0 = np.floor(v).astype(np.int64)
         fx_, fy_ = u - x0, v - y0
+        corners = ((0, 0, (1 - fx_) * (1 - fy_)), (1, 0, fx_ * (1 - fy_)), (0, 1, (1 - fx_) * fy_), (1, 1, fx_ * fy_))
         for b in np.unique(k):
-            sel = k == b
-            acc = np.zeros((3, h * w), np.float64)
-            for dx, dy, wt in ((0, 0, (1 - fx_) * (1 - fy_)), (1, 0, fx_ * (1 - fy_)),
-                               (0, 1, (1 - fx_) * fy_), (1, 1, fx_ * fy_)):
+            sel = np.nonzero(k == b)[0]
+            idx, wts, src = [], [], []
+            for dx, dy, wt in corners:                         # bilinear splat: four corners at once
                 xx, yy = x0[sel] + dx, y0[sel] + dy
                 ok = (xx >= 0) & (xx < w) & (yy >= 0) & (yy < h)
-                idx = (yy * w + xx)[ok]
-                for c in range(3):
-                    acc[c] += np.bincount(idx, weights=(energy[sel, c] * wt[sel])[ok], minlength=h * w)
+                idx.append((yy * w + xx)[ok])
+                wts.append(wt[sel][ok])
+                src.append(sel[ok])
+            idx, wts, src = np.concatenate(idx), np.concatenate(wts), np.concatenate(src)
             sb = float(_SIGMA_BINS[b])
             for c in range(3):
-                plane = acc[c].reshape(h, w).astype(np.float32)
-                out[c] += cv2.GaussianBlur(plane, (0, 0), sb, borderType=cv2.BORDER_CONSTANT)
+                plane = np.bincount(idx, weights=energy[src, c] * wts, minlength=h * w).astype(np.float32)
+                out[c] += cv2.GaussianBlur(plane.reshape(h, w), (0, 0), sb, borderType=cv2.BORDER_CONSTANT)
         return out

@@ -44,6 +44,7 @@ def warp_geometry(geom, R: np.ndarray, t: np.ndarray, iterations: int = 4):
     # start background pixels at the median scene depth, so that pixels the object moves into find it
     z_fill = np.float32(np.median(depth[geom.hit])) if geom.hit.any() else np.float32(Z_FAR)
     zt = np.where(geom.hit, depth, z_fill).astype(np.float32)
+    depth_flat = depth.ravel()
     for _ in range(iterations):
         # point on the true ray at the current depth estimate, in the recorded frame
         X = zt * xt - t32[0], zt * yt - t32[1], zt - t32[2]
@@ -51,11 +52,11 @@ def warp_geometry(geom, R: np.ndarray, t: np.ndarray, iterations: int = 4):
         zr = np.maximum(Xr[2], np.float32(1e-6))
         u = fx * Xr[0] / zr + cx
         v = fy * Xr[1] / zr + cy
-        iu = np.rint(u).astype(np.int64)
-        iv = np.rint(v).astype(np.int64)
+        iu = np.rint(u).astype(np.int32)
+        iv = np.rint(v).astype(np.int32)
         inside = (iu >= 0) & (iu < w) & (iv >= 0) & (iv < h) & (Xr[2] > 0)
-        iu_c, iv_c = np.clip(iu, 0, w - 1), np.clip(iv, 0, h - 1)
-        zs = np.where(inside, depth[iv_c, iu_c], np.float32(np.inf))
+        idx = np.clip(iv, 0, h - 1) * w + np.clip(iu, 0, w - 1)           # nearest source pixel (flat)
+        zs = np.where(inside, depth_flat.take(idx), np.float32(np.inf))
         hit = np.isfinite(zs)
         zs0 = np.where(hit, zs, np.float32(0))
         Xs = zs0 * (u - cx) / fx, zs0 * (v - cy) / fy, zs0
@@ -70,24 +71,25 @@ def warp_geometry(geom, R: np.ndarray, t: np.ndarray, iterations: int = 4):
     mapx, mapy = u.astype(np.float32), v.astype(np.float32)
     rgb_lin = cv2.remap(geom.rgb, mapx, mapy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
     cover = cv2.remap(geom.hit.astype(np.float32), mapx, mapy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-    rgb_near = geom.rgb[iv_c, iu_c]
+    rgb_near = geom.rgb.reshape(-1, 3).take(idx, axis=0)
     rgb = np.where((cover > 0.999)[..., None], rgb_lin, rgb_near)
     rgb[~hit] = 0.0
+    Xn = [np.where(hit, x, np.float32(0)) for x in Xn]
     X = np.stack(Xn, axis=-1).astype(np.float32)
-    X[~hit] = 0.0
-    depth_new = np.where(hit, X[..., 2], np.float32(np.inf)).astype(np.float32)
-    range_new = np.where(hit, np.linalg.norm(X, axis=-1), np.float32(np.inf)).astype(np.float32)
-    normals = geom.normals[iv_c, iu_c] @ R32.T
-    normals[~hit] = 0.0
-    labels = np.where(hit, geom.labels[iv_c, iu_c], 0).astype(np.uint8)
-    part_ids = np.where(hit, geom.part_ids[iv_c, iu_c], 0).astype(geom.part_ids.dtype)
+    depth_new = np.where(hit, Xn[2], np.float32(np.inf)).astype(np.float32)
+    range_new = np.where(hit, np.sqrt(Xn[0] * Xn[0] + Xn[1] * Xn[1] + Xn[2] * Xn[2]), np.float32(np.inf))
+    ns = [geom.normals[..., k].ravel().take(idx) for k in range(3)]
+    normals = np.stack([np.where(hit, R32[i, 0] * ns[0] + R32[i, 1] * ns[1] + R32[i, 2] * ns[2], np.float32(0))
+                        for i in range(3)], axis=-1)
+    labels = np.where(hit, geom.labels.ravel().take(idx), 0).astype(np.uint8)
+    part_ids = np.where(hit, geom.part_ids.ravel().take(idx), 0).astype(geom.part_ids.dtype)
     pose = None
     if geom.pose is not None:
         D = np.eye(4)
         D[:3, :3] = R
         D[:3, 3] = t
         pose = D @ geom.pose
-    return geom.replace(rgb=rgb.astype(np.float32), depth=depth_new, range_m=range_new, labels=labels,
+    return geom.replace(rgb=rgb.astype(np.float32), depth=depth_new, range_m=range_new.astype(np.float32), labels=labels,
                         part_ids=part_ids, pose=pose, X=X, normals=normals.astype(np.float32))
 
 

@@ -102,25 +102,32 @@ class UnmodeledGeometry(Effect):
         if not sel.any():
             return geom
         zs = z[sel]
-        xs = (np.broadcast_to(xt, geom.shape)[sel]) * zs
-        ys = (np.broadcast_to(yt, geom.shape)[sel]) * zs
-        Xc = np.stack([xs, ys, zs], axis=1)
-        rng_m = np.linalg.norm(Xc, axis=1)
-        Pp = (Xc - t) @ R                       # panel frame
-        tu = (Pp @ e1) / TILE
-        tv = -(Pp @ e2) / TILE
+        xs = np.broadcast_to(xt, geom.shape)[sel] * zs
+        ys = np.broadcast_to(yt, geom.shape)[sel] * zs
+        rng_m = np.sqrt(xs * xs + ys * ys + zs * zs)
+        # in-plane coordinates of the floor points: P = R^T (X - t), u = P.e1, v = P.e2 (per component:
+        # (M, 3) @ (3, 3) products with mixed dtypes are slow in numpy)
+        q1 = (R @ e1).astype(np.float32)
+        q2 = (R @ e2).astype(np.float32)
+        c1, c2 = np.float32(t @ (R @ e1)), np.float32(t @ (R @ e2))
+        tu = (xs * q1[0] + ys * q1[1] + zs * q1[2] - c1) * np.float32(1 / TILE)
+        tv = -(xs * q2[0] + ys * q2[1] + zs * q2[2] - c2) * np.float32(1 / TILE)
         # mip level from the pixel footprint on the floor
-        cos_inc = np.abs(Xc @ n_c) / np.maximum(rng_m, 1e-6)
-        foot = rng_m / (float(geom.camera.fx) * np.maximum(cos_inc, 0.05))          # m per pixel
+        n32 = n_c.astype(np.float32)
+        cos_inc = np.abs(xs * n32[0] + ys * n32[1] + zs * n32[2]) / np.maximum(rng_m, np.float32(1e-6))
+        foot = rng_m / (np.float32(geom.camera.fx) * np.maximum(cos_inc, np.float32(0.05)))   # m per pixel
         mips = _texture_mips()
-        lev = np.clip(np.rint(np.log2(np.maximum(foot * TEX_SIZE / TILE, 1.0))), 0, len(mips) - 1).astype(int)
+        lev = np.clip(np.rint(np.log2(np.maximum(foot * np.float32(TEX_SIZE / TILE), 1))), 0, len(mips) - 1)
+        lev = lev.astype(np.int8)
         col = np.empty((zs.size, 3), np.float32)
-        for L in np.unique(lev):
+        for L in range(len(mips)):
             m = lev == L
+            if not m.any():
+                continue
             img = mips[L]
-            S = img.shape[0] - 2
-            mx = ((tu[m] % 1.0) * S - 0.5 + 1).astype(np.float32)
-            my = ((tv[m] % 1.0) * S - 0.5 + 1).astype(np.float32)
+            S = np.float32(img.shape[0] - 2)
+            mx = (tu[m] % 1) * S + np.float32(0.5)           # +1 for the wrap padding, -0.5 for pixel centres
+            my = (tv[m] % 1) * S + np.float32(0.5)
             col[m] = _sample(img, mx, my)
         shade = SHADE_AMBIENT + (1 - SHADE_AMBIENT) * max(0.0, -float(n_c[2]))
         if values["contrast"] != 1:
@@ -138,9 +145,8 @@ class UnmodeledGeometry(Effect):
         labels[sel] = 2
         part = geom.part_ids.astype(np.uint16, copy=True)
         part[sel] = 0xFFFF
-        X = geom.X.copy()
-        X[sel] = Xc
-        normals = geom.normals.copy()
-        normals[sel] = n_c.astype(np.float32)
+        zf = np.where(sel, z, np.float32(0))
+        X = np.where(sel[..., None], np.stack([xt * zf, yt * zf, zf], axis=-1), geom.X)
+        normals = np.where(sel[..., None], n_c.astype(np.float32), geom.normals)
         return geom.replace(rgb=rgb, depth=depth, range_m=rng_arr, labels=labels, part_ids=part, X=X,
                             normals=normals)
