@@ -247,6 +247,9 @@ def fit_model(model, rframes, noise, x0, sigma0=0.1, seed: int = 0, max_iter: in
     finally:
         if own:
             obj.close()
-    x = to_x(res.x_best)[0]
-    return ModelFit(model, x, float(res.f_best), theta_start, int(res.n_evals), int(res.n_iters),
+    x, f_best = to_x(res.x_best)[0], float(res.f_best)
+    if not f_best >= theta_start:
+        # cma's bound handling moves an injected start that lies near a bound: never return worse than it
+        x, f_best = x0.copy(), theta_start
+    return ModelFit(model, x, f_best, theta_start, int(res.n_evals), int(res.n_iters),
                     str(res.stop_reason), time.perf_counter() - t0, seed, [float(v) for v in res.history_best_f])

@@ -208,7 +208,7 @@ def _fit(name, frames, p0, fog, max_nfev=None, joint=True):
         return np.concatenate(out)
 
     res = least_squares(resid, x0, bounds=(lo, hi), method="trf", x_scale=np.maximum(hi - lo, 1e-3) * 0.1,
-                        diff_step=1e-3, max_nfev=max_nfev or 15, xtol=1e-5, ftol=1e-5)
+                        diff_step=1e-3, max_nfev=max_nfev or 8, xtol=1e-4, ftol=1e-4)
     p, e = split(res.x)
     r = res.fun
     return np.concatenate([p, e]), float(np.mean(r * r))
@@ -222,7 +222,9 @@ def screen_proxies(rframes, base_x, noise, fog: str = "exp2", stride: int = 3, n
     frames = [_Frame(rf, stride) for rf in rframes]
     n2 = float(np.mean([np.mean(np.square(s)) for s in noise]))
     xb, Eb = _fit("base", frames, np.asarray(base_x, float), fog)
-    exc = max(Eb - n2, 1e-6)
+    # the share is taken of the excess over the noise, but never of less than a third of the noise energy
+    # (else a near-perfect fit would give any proxy a large share of almost nothing)
+    exc = max(Eb - n2, n2 / 3.0, 0.5)
     out = {"base": ProxyResult("base", 0.0, Eb, {}, xb.tolist())}
     for name in names:
         if name == "unmodeled_geometry":
@@ -263,5 +265,5 @@ def _water_structure(frames, xb, fog, Eb, n2, noise) -> ProxyResult:
         npx += int(w[fr.sel].sum())
     n_res = total_px * 3
     E = Eb - removed / max(n_res, 1)
-    exc = max(Eb - n2, 1e-6)
+    exc = max(Eb - n2, n2 / 3.0, 0.5)
     return ProxyResult("unmodeled_geometry", float(np.clip((Eb - E) / exc, 0, 1)), float(E), {}, list(xb))

@@ -644,16 +644,22 @@ def _object_window(hit: np.ndarray, pad: int = 12):
 
 
 def _align(R: np.ndarray, S: np.ndarray):
-    """Euclidean (shift + rotation) alignment of S to R by ECC [5]: returns (dx, dy, angle_rad, ok)."""
+    """Alignment of S to R by ECC [5]: affine (shift, rotation, scale, shear: a small pose error seen on a
+    roughly planar object), returns (dx, dy, angle_rad, ok, 2x3 warp)."""
     import cv2
 
     warp = np.eye(2, 3, dtype=np.float32)
     try:
-        cc, warp = cv2.findTransformECC(R.astype(np.float32), S.astype(np.float32), warp, cv2.MOTION_EUCLIDEAN,
+        cc, warp = cv2.findTransformECC(R.astype(np.float32), S.astype(np.float32), warp, cv2.MOTION_AFFINE,
                                         (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-5), None, 3)
     except cv2.error:
-        return 0.0, 0.0, 0.0, False
-    return float(warp[0, 2]), float(warp[1, 2]), float(math.atan2(warp[1, 0], warp[0, 0])), True
+        return 0.0, 0.0, 0.0, False, np.eye(2, 3, dtype=np.float32)
+    h, w = R.shape
+    # displacement of the window centre and the rotation part of the affine map
+    c = np.array([(w - 1) / 2, (h - 1) / 2, 1.0])
+    d = warp @ c - c[:2]
+    ang = 0.5 * (math.atan2(warp[1, 0], warp[0, 0]) - math.atan2(warp[0, 1], warp[1, 1]))
+    return float(d[0]), float(d[1]), float(ang), True, warp
 
 
 def _fit_energy(R, S, mask):
@@ -679,6 +685,7 @@ def sig_blur_and_shift(ctx: SignatureContext) -> tuple:
     import cv2
 
     shifts, angles, e_shift, sig_px, e_blur, ranges, hf = [], [], [], [], [], [], []
+    motion = []                                  # (range, dx, dy, angle, fx, fy) per frame, full resolution
     spectra = []
     widths = np.array([0.0, 0.4, 0.6, 0.8, 1.0, 1.3, 1.7, 2.2, 2.8, 3.6, 4.5, 6.0])
     for k, rf in enumerate(ctx.rframes):
@@ -692,10 +699,7 @@ def sig_blur_and_shift(ctx: SignatureContext) -> tuple:
             continue
         R = luminance(fr.image.astype(np.float32))[y0:y1, x0:x1]
         S = luminance(ctx.full_sim(k))[y0:y1, x0:x1]
-        dx, dy, ang, ok = _align(R, S)
-        if not ok:
-            dx = dy = ang = 0.0
-        M = np.array([[math.cos(ang), -math.sin(ang), dx], [math.sin(ang), math.cos(ang), dy]], np.float32)
+        dx, dy, ang, ok, M = _align(R, S)
         Sa = cv2.warpAffine(S, M, (S.shape[1], S.shape[0]), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
                             borderMode=cv2.BORDER_REPLICATE)
         gy, gx = np.gradient(S)
@@ -722,6 +726,8 @@ def sig_blur_and_shift(ctx: SignatureContext) -> tuple:
             if a > 0:
                 wbest = float(np.clip(-b / (2 * a), x3[0], x3[2]))
         noise2 = float(np.mean(np.square(ctx.noise[k]))) * rf.factor ** 2    # full-resolution noise variance
+        cam = fr.camera
+        motion.append((float(fr.range_median), float(dx), float(dy), float(ang), float(cam.fx), float(cam.fy)))
         shifts.append(float(math.hypot(dx, dy)))
         angles.append(float(abs(ang)))
         e_shift.append(max(0.0, (E0 - E1) / max(E0 - noise2 * 0.5, 1e-6)))
@@ -759,7 +765,7 @@ def sig_blur_and_shift(ctx: SignatureContext) -> tuple:
     pose = Signature("pose_error", float(pose_score),
                      {"shift_px_median": shift_m, "rotation_deg_median": ang_m, "shift_px": sh.tolist(),
                       "energy_removed_by_alignment": es.tolist(), "ranges": ranges.tolist()},
-                     {"shift_px": shift_m, "rotation_deg": ang_m})
+                     {"shift_px": shift_m, "rotation_deg": ang_m, "motion": motion})
     blur = Signature("forward_scatter", float(blur_score),
                      {"blur_px_median": blur_m, "blur_px": sp.tolist(), "blur_px_per_m": trend,
                       "energy_removed_by_blur": eb.tolist(), "hf_ratio": hf, "ranges": ranges.tolist()},
