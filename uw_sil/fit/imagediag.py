@@ -37,6 +37,8 @@ from typing import Callable, Optional
 
 import numpy as np
 
+from .signatures import trimmed_sigma
+
 __all__ = ["load_images", "diagnose_images", "IMAGE_EXTENSIONS", "NOT_JUDGED"]
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm")
@@ -138,20 +140,6 @@ def _falloff(frames) -> dict:
     return {"frames": rows}
 
 
-def _trimmed_sigma(d: np.ndarray, keep: float = 0.9) -> float:
-    """Noise sigma from pixel differences: RMS of the smallest ``keep`` share of |d|, corrected to a Gaussian
-    (robust to edges; unlike the MAD it does not collapse to 0 on the flat, quantized regions of compressed
-    video), divided by sqrt(2) for a difference of two pixels."""
-    from scipy.stats import norm
-
-    a = np.sort(np.abs(np.asarray(d, np.float64)))
-    n = max(1, int(keep * a.size))
-    q = norm.ppf(0.5 + keep / 2)
-    # E[x^2 | |x| < q] for a standard normal
-    trunc = 1 - 2 * q * norm.pdf(q) / keep
-    return float(np.sqrt(np.mean(a[:n] ** 2) / trunc) / math.sqrt(2))
-
-
 def _noise(frames) -> dict:
     import cv2
 
@@ -167,8 +155,8 @@ def _noise(frames) -> dict:
         ok3 = flat[:, 3:] & flat[:, :-3]
         if ok1.sum() < 500 or ok3.sum() < 500:
             continue
-        s1 = _trimmed_sigma(d1[ok1])
-        s3 = _trimmed_sigma(d3[ok3])
+        s1 = trimmed_sigma(d1[ok1])
+        s3 = trimmed_sigma(d3[ok3])
         # intensity dependence: sigma in intensity bins of the flat pixels (lag-1 differences)
         I = 0.5 * (Y[:, 1:] + Y[:, :-1])[ok1]
         D = d1[ok1]
@@ -178,7 +166,7 @@ def _noise(frames) -> dict:
             sel = (I >= lo) & (I <= hi)
             if sel.sum() > 200:
                 dd = D[sel]
-                pts.append((float(I[sel].mean()), float(_trimmed_sigma(dd) ** 2)))
+                pts.append((float(I[sel].mean()), float(trimmed_sigma(dd) ** 2)))
         slope = None
         if len(pts) >= 3 and np.ptp([p[0] for p in pts]) > 30:
             A = np.stack([np.ones(len(pts)), [p[0] for p in pts]], 1)
