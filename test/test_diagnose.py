@@ -70,6 +70,7 @@ def test_json_follows_the_schema(diagnoses):
     broken["verdict"][0]["confidence"] = 1.5
     with pytest.raises(ValueError, match="confidence"):
         validate_diagnosis_json(broken)
+    broken["verdict"][0]["confidence"] = 0.5
     del broken["final"]
     with pytest.raises(ValueError, match="final"):
         validate_diagnosis_json(broken)
