@@ -103,7 +103,7 @@ class ReducedFrame:
         return np.where(self.cover > 0, self.range, np.float32(0.0))
 
 
-def _dilate(mask: np.ndarray, r: int) -> np.ndarray:
+def dilate(mask: np.ndarray, r: int) -> np.ndarray:
     import cv2
 
     if r <= 0:
@@ -112,7 +112,7 @@ def _dilate(mask: np.ndarray, r: int) -> np.ndarray:
     return cv2.dilate(mask.astype(np.uint8), k) > 0
 
 
-def _erode(mask: np.ndarray, r: int) -> np.ndarray:
+def erode(mask: np.ndarray, r: int) -> np.ndarray:
     import cv2
 
     if r <= 0:
@@ -145,7 +145,7 @@ def reduce_frame(frame: DiagFrame, factor: int, water_margin: int = 2) -> Reduce
     pmin = rr.part_ids[:h * f, :w * f].reshape(h, f, w, f).min(axis=(1, 3))
     lab_min = rr.labels[:h * f, :w * f].reshape(h, f, w, f).min(axis=(1, 3))
     obj = (cover >= 1.0) & (pmax == pmin) & (lab_min == LABEL_PANEL)
-    water = ~_dilate(cover > 0, water_margin)
+    water = ~dilate(cover > 0, water_margin)
     return ReducedFrame(frame, f, box_down(frame.image, f), rgb.astype(np.float32), cover, rng.astype(np.float32),
                         dep.astype(np.float32), labels, parts_c.astype(np.uint16), obj, water,
                         camera=frame.camera.scaled(1.0 / f) if f > 1 else frame.camera)

@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .residuals import ReducedFrame, _dilate, _erode
+from .residuals import ReducedFrame, dilate, erode
 
 __all__ = ["ProxyResult", "screen_proxies", "PROXIES"]
 
@@ -247,7 +247,7 @@ def _water_structure(frames, xb, fog, Eb, n2, noise) -> ProxyResult:
     for fr, s in zip(frames, noise):
         S, _ = fr.base(xb, fog, full=True)
         D = (fr.Rfull - 255 * S)                              # (3, h, w)
-        w = fr.rf.water & ~_dilate(fr.rf.cover > 0, 2)
+        w = fr.rf.water & ~dilate(fr.rf.cover > 0, 2)
         total_px += fr.sel.sum()
         if w.sum() < 100:
             continue
@@ -258,7 +258,7 @@ def _water_structure(frames, xb, fog, Eb, n2, noise) -> ProxyResult:
             E = np.zeros_like(D[c])
             E[w] = D[c][w] - A @ coef
             sm = cv2.blur(E, (5, 5)) / np.maximum(cv2.blur(w.astype(np.float32), (5, 5)), 1e-3)
-            sm = np.where(_erode(w, 2), sm, 0)
+            sm = np.where(erode(w, 2), sm, 0)
             # a 5x5 mean of white noise keeps sigma^2/25 of its energy: subtract that
             e = np.maximum(sm * sm - float(s[c]) ** 2 / 25.0, 0)
             removed += float(e[fr.sel].sum())

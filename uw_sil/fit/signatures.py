@@ -53,7 +53,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from .residuals import LABEL_PANEL, ReducedFrame, _dilate, _erode
+from .residuals import LABEL_PANEL, ReducedFrame, dilate, erode
 
 __all__ = ["Signature", "SignatureContext", "run_signatures", "SIGNATURE_TESTS", "EFFECT_NAMES", "luminance",
            "speck_masks", "speck_density", "noise_statistics", "trimmed_sigma"]
@@ -287,7 +287,7 @@ def sig_artificial_light(ctx: SignatureContext) -> Signature:
     spreads, levels, ranges, spots, water_spread = [], [], [], [], []
     surfaces = []
     for k, rf in enumerate(ctx.rframes):
-        m = _erode(rf.obj, 1)
+        m = erode(rf.obj, 1)
         if m.sum() < 40:
             continue
         x, y = ctx.tan_coords(k)
@@ -348,7 +348,7 @@ def sig_backscatter_coefficient(ctx: SignatureContext) -> Signature:
     """
     alphas, gains, ranges, wbias = [], [], [], []
     for k, rf in enumerate(ctx.rframes):
-        m = _erode(rf.obj, 1)
+        m = erode(rf.obj, 1)
         if m.sum() < 40:
             continue
         S = 255 * ctx.sims[k][m]
@@ -453,7 +453,7 @@ def sig_unmodeled_geometry(ctx: SignatureContext, margin: int = 4) -> Signature:
     shares, texture = [], []
     maps = []
     for k, rf in enumerate(ctx.rframes):
-        w = rf.water & ~_dilate(rf.cover > 0, margin)
+        w = rf.water & ~dilate(rf.cover > 0, margin)
         if w.sum() < 300:
             continue
         x, y = ctx.tan_coords(k)
@@ -471,7 +471,7 @@ def sig_unmodeled_geometry(ctx: SignatureContext, margin: int = 4) -> Signature:
         mean = cv2.blur(E * wm, (7, 7)) / np.maximum(n, 1e-6)
         sq = cv2.blur(E * E * wm, (7, 7)) / np.maximum(n, 1e-6)
         std = np.sqrt(np.maximum(sq - mean * mean, 0))
-        inner = _erode(w, 3)
+        inner = erode(w, 3)
         if inner.sum() < 100:
             continue
         coherent = np.abs(mean) > 3.0 * max(sig, 0.3) / 7.0 * 3.0
@@ -517,7 +517,7 @@ def noise_statistics(Y: np.ndarray, S: np.ndarray, hit: np.ndarray) -> Optional[
     lag-3 sigma (1 for white noise), column and row fixed-pattern variance ratios, the noise sigma on flat
     object parts and the intensities of both. None when the frame has too little open water."""
     # open water well away from the model (a pose error moves real edges several pixels off the render)
-    water = ~_dilate(hit, 24)
+    water = ~dilate(hit, 24)
     if water.sum() < 2000:
         return None
     hp = _hp(Y, 2.0)
@@ -542,8 +542,8 @@ def noise_statistics(Y: np.ndarray, S: np.ndarray, hit: np.ndarray) -> Optional[
     gy, gx = np.gradient(S)
     ry, rx = np.gradient(cv2.GaussianBlur(Y, (0, 0), 2.0))
     # flat in the simulation and in the recording (a pose error puts real edges where the render is flat)
-    flat = _erode(hit, 3) & (np.hypot(gx, gy) < 0.5) & (np.hypot(rx, ry) < 1.5)
-    flat &= _erode(flat, 2)
+    flat = erode(hit, 3) & (np.hypot(gx, gy) < 0.5) & (np.hypot(rx, ry) < 1.5)
+    flat &= erode(flat, 2)
     if flat.sum() > 300:
         dd = (Y[:, 3:] - Y[:, :-3])
         ok = flat[:, 3:] & flat[:, :-3]
@@ -615,8 +615,8 @@ def speck_masks(R: np.ndarray, S: np.ndarray, hit: np.ndarray, k: float = 5.0):
     D = (R - S).astype(np.float32)
     hp = D - _median(D, 7)
     gy, gx = np.gradient(S)
-    edge = _dilate(np.hypot(gx, gy) > 4.0, 3)
-    edge |= _dilate(hit, 2) & ~_erode(hit, 2)
+    edge = dilate(np.hypot(gx, gy) > 4.0, 3)
+    edge |= dilate(hit, 2) & ~erode(hit, 2)
     a = np.abs(hp)
     scale = _MAD * cv2.blur(np.minimum(a, 50.0), (31, 31)) / 0.8453 + 0.5   # mean |x| of N(0,1) = 0.798
     ok = ~edge
@@ -659,7 +659,7 @@ def sig_marine_snow(ctx: SignatureContext) -> Signature:
         if npos > 1:
             sizes.append(float(np.median(st_p[1:, cv2.CC_STAT_AREA])))
         if prev is not None and pos.sum() > 0 and prev.sum() > 0:
-            overlap.append(float((pos & _dilate(prev, 1)).sum() / pos.sum()))
+            overlap.append(float((pos & dilate(prev, 1)).sum() / pos.sum()))
         prev = pos
     if not pos_d:
         return Signature("marine_snow", 0.0, judged=False, reason="no frames")
@@ -756,7 +756,7 @@ def sig_blur_and_shift(ctx: SignatureContext) -> tuple:
         Sa = cv2.warpAffine(S, M, (S.shape[1], S.shape[0]), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
                             borderMode=cv2.BORDER_REPLICATE)
         gy, gx = np.gradient(S)
-        edges = _dilate(np.hypot(gx, gy) > 3.0, 3)
+        edges = dilate(np.hypot(gx, gy) > 3.0, 3)
         inner = np.zeros_like(edges)
         inner[8:-8, 8:-8] = True
         m = edges & inner
