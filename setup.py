@@ -9,13 +9,13 @@ setup(
     name=package_name,
     version="0.1.0",
     packages=find_packages(exclude=["test", "test.*", "bench"]),
-    package_data={"uw_sil.sim": ["models/*.glb"]},
+    package_data={"uw_sil.sim": ["models/*.glb", "models/*.yaml"]},
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
         ("share/" + package_name + "/launch", glob("launch/*.launch.py")),
         ("share/" + package_name + "/config", glob("config/*.yaml") + glob("config/*.xml")),
-        ("share/" + package_name + "/models", glob("uw_sil/sim/models/*.glb")),
+        ("share/" + package_name + "/models", glob("uw_sil/sim/models/*.glb") + glob("uw_sil/sim/models/*.yaml")),
     ],
     python_requires=">=3.10",
     install_requires=[
@@ -56,7 +56,7 @@ setup(
         ],
         # `uw-sil batch --executor dask://HOST:PORT`
         "dask": ["dask[distributed]>=2024.1"],
-        "test": ["pytest>=7", "dask[distributed]>=2024.1"],
+        "test": ["pytest>=7", "dask[distributed]>=2024.1", "hypothesis>=6.100"],
     },
     zip_safe=True,
     maintainer="uw_sil developers",

@@ -27,9 +27,9 @@ try:  # after the move to subpackages
     from uw_sil.sim.render import Renderer  # noqa: E402
     from uw_sil.sim.scene import facing_pose  # noqa: E402
 except ImportError:
-    from uw_sil.optics import degrade  # noqa: E402
-    from uw_sil.render import Renderer  # noqa: E402
-    from uw_sil.scene import facing_pose  # noqa: E402
+    from uw_sil.sim.optics import degrade  # noqa: E402
+    from uw_sil.sim.render import Renderer  # noqa: E402
+    from uw_sil.sim.scene import facing_pose  # noqa: E402
 
 PARAMS = [0.4, 0.1, 0.08, 0.06, 0.3, 0.4, 0.08]
 

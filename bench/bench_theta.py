@@ -32,7 +32,8 @@ from scipy.ndimage import gaussian_filter
 from uw_sil.metrics.fsim import fsim
 from uw_sil.metrics.theta import ThetaReference
 
-DATA = Path(os.environ.get("UW_SIL_SHARED_DATA") or Path(__file__).resolve().parents[2] / "shared" / "data")
+# The repository's test images (test/data/PROVENANCE.md); $UW_SIL_SHARED_DATA names another directory of that layout.
+DATA = Path(os.environ.get("UW_SIL_SHARED_DATA") or Path(__file__).resolve().parents[1] / "test" / "data")
 REAL = DATA / "real_underwater" / "suim_test" / "images" / "f_r_1965_.jpg"
 N = 20
 REPEATS = 5

@@ -395,11 +395,12 @@ def test_compressed_image_topic(tmp_path):
 
 def test_missing_topic_and_wrong_type_errors(tmp_path):
     bag = write_trial(tmp_path / "e.mcap", make_samples(2))
-    with pytest.raises(BagError, match=r"'/camera/nope' is not in bag .*/camera/image_raw \[sensor_msgs/msg/Image\]"):
+    with pytest.raises(BagError, match=r"e: topic '/camera/nope' is not in the bag; it has: "
+                                       r".*/camera/image_raw \[sensor_msgs/msg/Image\]"):
         read_samples(bag, image_topic="/camera/nope")
     with pytest.raises(BagError, match=r"'/tf' has type tf2_msgs/msg/TFMessage, expected geometry_msgs/msg/PoseStamped"):
         read_samples(bag, pose_topic="/tf")
-    with pytest.raises(BagError, match="not in bag"):
+    with pytest.raises(BagError, match="not in the bag"):
         iter_messages(bag, "/nope")
     with pytest.raises(ValueError, match="must differ"):
         read_samples(bag, info_topic="/camera/image_raw")
@@ -465,16 +466,28 @@ def test_bad_image_messages_give_clear_errors(tmp_path):
         list(read_samples(bag))
 
 
-def test_distortion_is_warned_about(tmp_path, caplog):
+def test_distortion_is_rectified(tmp_path, caplog):
+    """camera_info with plumb_bob distortion: the frames are rectified (K, D -> P) and the report says so."""
+    import cv2
+
     ts = typestore()
-    msgs = frame_msgs(ts, T0, np.zeros((H, W, 3), np.uint8).tobytes())
-    msgs[1] = (msgs[1][0], msgs[1][1], T0, info_msg(ts, T0, d=[-0.2, 0.05, 0, 0, 0]))
+    d = [-0.2, 0.05, 0, 0, 0]
+    rng = np.random.default_rng(0)
+    raw = cv2.GaussianBlur(rng.integers(0, 256, (H, W, 3), dtype=np.uint8), (5, 5), 1.5)
+    msgs = frame_msgs(ts, T0, raw.tobytes())
+    msgs[1] = (msgs[1][0], msgs[1][1], T0, info_msg(ts, T0, d=d))
     bag = write_raw_bag(tmp_path / "dist", msgs)
-    with caplog.at_level(logging.WARNING, logger="uw_sil.bags.reader"):
+    with caplog.at_level(logging.INFO, logger="uw_sil.bags.reader"):
         stream = read_samples(bag)
-        assert len(list(stream)) == 1
-    assert any("distortion" in w for w in stream.report.warnings)
-    assert any("distortion" in r.getMessage() for r in caplog.records)
+        (s,) = list(stream)
+    maps = cv2.initUndistortRectifyMap(CAM.K, np.asarray(d, float), None, CAM.K, (W, H), cv2.CV_32FC1)  # P = K here
+    expected = cv2.remap(raw, *maps, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
+    inner = (slice(3, -3), slice(3, -3))
+    assert np.abs(s.image[inner].astype(int) - expected[inner]).max() <= 1
+    assert np.abs(s.image[inner].astype(int) - raw[inner]).mean() > 5          # it did change the frame
+    assert s.camera == CAM
+    assert any("distortion" in n and "rectified" in n for n in stream.report.notes)
+    assert any("rectified" in r.getMessage() for r in caplog.records)
 
 
 def test_write_trial_validation(tmp_path):

@@ -299,7 +299,7 @@ def test_synth_injects_effects_recorded_only_in_truth(tmp_path, capsys):
     meta = (tmp_path / "b" / "metadata.yaml").read_text()
     assert "vignetting" not in meta and "marine_snow" not in meta        # nothing of it in the bag
     capsys.readouterr()
-    assert main(["synth", "--out", str(tmp_path / "c.mcap"), *common, "--effects", "vignetting,fog_of_war"]) == 1
+    assert main(["synth", "--out", str(tmp_path / "c.mcap"), *common, "--effects", "vignetting,fog_of_war"]) == 2
     assert "fog_of_war" in capsys.readouterr().err
     assert not (tmp_path / "c").exists()
 

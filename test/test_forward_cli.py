@@ -63,7 +63,7 @@ def test_enhance_dcp_needs_no_params_and_refuses_to_overwrite(trial, tmp_path, c
     out = tmp_path / "d.mcap"
     assert main(["enhance", "--bag", str(bag), "--method", "udcp", "--out", str(out)]) == 0
     before = sorted(p.stat().st_mtime_ns for p in (tmp_path / "d").iterdir())
-    assert main(["enhance", "--bag", str(bag), "--method", "dcp", "--out", str(out)]) == 1
+    assert main(["enhance", "--bag", str(bag), "--method", "dcp", "--out", str(out)]) == 2
     assert "exists" in capsys.readouterr().err
     assert sorted(p.stat().st_mtime_ns for p in (tmp_path / "d").iterdir()) == before
     assert main(["enhance", "--bag", str(bag), "--method", "dcp", "--out", str(out), "--force"]) == 0
@@ -82,7 +82,7 @@ def test_enhance_bad_params_are_clear_errors_and_write_nothing(trial, tmp_path, 
     args = ["enhance", "--bag", str(bag), "--out", str(tmp_path / "o.mcap")]
     if params:
         args += ["--params", str(tmp_path / params)]
-    assert main(args) == 1
+    assert main(args) == 2
     assert message in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
 
@@ -90,7 +90,7 @@ def test_enhance_bad_params_are_clear_errors_and_write_nothing(trial, tmp_path, 
 def test_enhance_of_a_bag_without_images_is_a_clear_error(trial, tmp_path, capsys):
     bag, fit = trial
     assert main(["enhance", "--bag", str(tmp_path / "none.mcap"), "--params", str(fit), "--out",
-                 str(tmp_path / "o.mcap")]) == 1
+                 str(tmp_path / "o.mcap")]) == 2
     assert "error" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
 
@@ -138,5 +138,5 @@ def test_features_prints_table_writes_csv_and_report_deterministically(trial, tm
                                             ("1,99", "no frame")])
 def test_features_bad_frames(trial, capsys, frames, message):
     bag, fit = trial
-    assert main(["features", "--bag", str(bag), "--params", str(fit), "--frames", frames]) == 1
+    assert main(["features", "--bag", str(bag), "--params", str(fit), "--frames", frames]) == 2
     assert message in capsys.readouterr().err

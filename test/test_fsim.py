@@ -6,7 +6,7 @@ from PIL import Image  # Pillow comes with matplotlib (an install requirement)
 from scipy.ndimage import gaussian_filter
 from scipy.signal import convolve2d
 
-from datapaths import SHARED_DATA
+from datapaths import TEST_DATA, external_file
 from uw_sil.metrics.fsim import (
     FSIMReference,
     _box_downsample,
@@ -17,7 +17,7 @@ from uw_sil.metrics.fsim import (
     phase_congruency,
 )
 
-DATA = SHARED_DATA
+DATA = TEST_DATA
 IQA = DATA / "iqa_pairs"
 UW = DATA / "real_underwater"
 
@@ -62,8 +62,9 @@ CALIB_MATLAB_FSIMC = {"I03": 0.6890, "I04": 0.9702, "I06": 0.9927, "I08": 0.9575
 
 @pytest.mark.parametrize("name", sorted(CALIB_MATLAB_FSIMC))
 def test_calibration_pairs_match_matlab_4_decimals(name):
-    ref = _read(IQA / "calib" / "ref" / f"{name}.bmp")
-    dist = _read(IQA / "calib" / "dist" / f"{name}.bmp")
+    # Not in the repository (IQA-PyTorch's images are not under an Apache/MIT licence): see test/datapaths.py
+    ref = _read(external_file(f"iqa_pairs/calib/ref/{name}.bmp"))
+    dist = _read(external_file(f"iqa_pairs/calib/dist/{name}.bmp"))
     fc = fsim(ref, dist).fsimc
     assert abs(fc - CALIB_MATLAB_FSIMC[name]) <= 5e-5 + 1e-9
 

@@ -4,8 +4,6 @@ import io
 import os
 import signal
 import stat
-import sys
-import threading
 import time
 
 import pytest
@@ -67,17 +65,38 @@ def test_share_file_finds_the_fastdds_profile():
 # ------------------------------------------------------------------------------------------ launcher
 
 FAKE_PYTHON = r"""#!/bin/bash
-# Stands in for `python -m uw_sil.nodes.NAME --ros-args ...`: behaves according to NAME.
+# Stands in for `python -m uw_sil.nodes.NAME --ros-args ...`: behaves according to NAME. A long-running
+# node creates the file $READY once its signal traps are set; quick and fail wait for it (when READY is
+# set), so the launcher never signals a node that has not yet installed its traps, however busy the machine.
 name="${2#uw_sil.nodes.}"
 echo "profile=$FASTDDS_DEFAULT_PROFILES_FILE"
 echo -n "partial line without newline"; echo " completed"
+wait_ready() { if [ -n "$READY" ]; then while [ ! -e "$READY" ]; do sleep 0.02; done; fi; }
+ready() { if [ -n "$READY" ]; then touch "$READY"; fi; }
 case "$name" in
-  quick) sleep 0.5; echo "finished"; exit 0 ;;
-  fail) sleep 0.2; echo "something broke" >&2; exit 3 ;;
-  stubborn) trap '' INT TERM; while :; do sleep 0.05; done ;;
-  *) trap 'echo "got SIGINT"; exit 0' INT; while :; do sleep 0.05; done ;;
+  quick) wait_ready; sleep 0.2; echo "finished"; exit 0 ;;
+  fail) wait_ready; sleep 0.2; echo "something broke" >&2; echo "[ERROR] [1795368386.5] [fail]: bag /x does not exist" >&2
+        echo "later output"; exit 3 ;;
+  stubborn) trap '' INT TERM; ready; echo "ignoring signals"; while :; do sleep 0.05; done ;;
+  *) trap 'echo "got SIGINT"; exit 0' INT; ready; echo "trapping SIGINT"; while :; do sleep 0.05; done ;;
 esac
 """
+
+
+class SignalOn(io.StringIO):
+    """Launcher output that sends this process SIGINT (a Ctrl-C) each time the next of ``triggers`` appears
+    in it: the test reacts to what the launcher did, not to a timer racing it."""
+
+    def __init__(self, *triggers):
+        super().__init__()
+        self.triggers = list(triggers)
+
+    def write(self, text):
+        n = super().write(text)
+        while self.triggers and self.triggers[0] in self.getvalue():
+            self.triggers.pop(0)
+            os.kill(os.getpid(), signal.SIGINT)
+        return n
 
 
 @pytest.fixture
@@ -100,10 +119,11 @@ def _pids(text: str) -> list:
     return [int(line.split("(pid ")[1].split(")")[0]) for line in text.splitlines() if "(pid " in line]
 
 
-def test_required_node_ends_the_graph(fake_python):
+def test_required_node_ends_the_graph(fake_python, tmp_path):
     out = io.StringIO()
     rc = launcher.launch([NodeSpec("server", "server"), NodeSpec("quick", "quick", required=True)],
-                         env={"PATH": os.environ["PATH"]}, out=out, python=fake_python)
+                         env={"PATH": os.environ["PATH"], "READY": str(tmp_path / "ready")}, out=out,
+                         python=fake_python)
     text = out.getvalue()
     assert rc == 0, text
     assert "[quick ] finished" in text                     # output prefixed with the (padded) node name
@@ -115,16 +135,11 @@ def test_required_node_ends_the_graph(fake_python):
     assert not any(_alive(p) for p in _pids(text))
 
 
-def test_a_node_that_ends_normally_does_not_end_the_graph(fake_python):
-    out = io.StringIO()
-    timer = threading.Timer(1.0, os.kill, (os.getpid(), signal.SIGINT))
-    timer.start()
-    try:
-        rc = launcher.launch([NodeSpec("server", "server"), NodeSpec("quick", "quick")],
-                             env={"PATH": os.environ["PATH"], "FASTDDS_DEFAULT_PROFILES_FILE": "/mine.xml"},
-                             out=out, python=fake_python)
-    finally:
-        timer.cancel()
+def test_a_node_that_ends_normally_does_not_end_the_graph(fake_python, tmp_path):
+    out = SignalOn("quick exited with status 0")        # Ctrl-C once quick has ended
+    rc = launcher.launch([NodeSpec("server", "server"), NodeSpec("quick", "quick")],
+                         env={"PATH": os.environ["PATH"], "FASTDDS_DEFAULT_PROFILES_FILE": "/mine.xml",
+                              "READY": str(tmp_path / "ready")}, out=out, python=fake_python)
     text = out.getvalue()
     # the server kept running after `quick` ended, until Ctrl-C, which it got once and obeyed
     assert rc == 0, text
@@ -134,22 +149,26 @@ def test_a_node_that_ends_normally_does_not_end_the_graph(fake_python):
     assert not any(_alive(p) for p in _pids(text))
 
 
-def test_failing_node_stops_the_graph_with_an_error(fake_python):
+def test_failing_node_stops_the_graph_with_an_error(fake_python, tmp_path):
     out = io.StringIO()
-    rc = launcher.launch([NodeSpec("server", "server"), NodeSpec("fail", "fail")], env={"PATH": os.environ["PATH"]},
-                         out=out, python=fake_python)
+    rc = launcher.launch([NodeSpec("server", "server"), NodeSpec("fail", "fail")],
+                         env={"PATH": os.environ["PATH"], "READY": str(tmp_path / "ready")}, out=out,
+                         python=fake_python)
     text = out.getvalue()
     assert rc == 1
     assert "[fail  ] something broke" in text               # stderr is shown too
-    assert "fail exited with status 3 (FAILED)" in text and "fail failed: stopping server" in text
-    assert "FAILED: fail" in text
+    assert "fail exited with status 3 (FAILED)" in text
+    # the graph ends with the node's reason: its last error line
+    assert "fail failed (bag /x does not exist): stopping server" in text
+    assert "FAILED: fail (bag /x does not exist)" in text
 
 
-def test_node_ignoring_signals_is_killed_and_reported(fake_python):
+def test_node_ignoring_signals_is_killed_and_reported(fake_python, tmp_path):
     out = io.StringIO()
     t0 = time.monotonic()
     rc = launcher.launch([NodeSpec("stubborn", "stubborn"), NodeSpec("quick", "quick", required=True)],
-                         env={"PATH": os.environ["PATH"]}, out=out, python=fake_python, stop_timeout=0.3)
+                         env={"PATH": os.environ["PATH"], "READY": str(tmp_path / "ready")}, out=out,
+                         python=fake_python, stop_timeout=0.3)
     text = out.getvalue()
     assert rc == 1, text
     assert "sending SIGTERM" in text and "sending SIGKILL" in text and "killed by SIGKILL" in text
@@ -158,17 +177,11 @@ def test_node_ignoring_signals_is_killed_and_reported(fake_python):
 
 
 def test_repeated_ctrl_c_escalates_at_once(fake_python):
-    out = io.StringIO()
-    timers = [threading.Timer(t, os.kill, (os.getpid(), signal.SIGINT)) for t in (0.8, 1.1, 1.4)]
-    for t in timers:
-        t.start()
+    # Ctrl-C once the node ignores signals, again once the launcher is stopping it, a third time after SIGTERM
+    out = SignalOn("[stubborn] ignoring signals", "SIGINT received: stopping stubborn", "sending SIGTERM")
     t0 = time.monotonic()
-    try:
-        rc = launcher.launch([NodeSpec("stubborn", "stubborn")], env={"PATH": os.environ["PATH"]}, out=out,
-                             python=fake_python, stop_timeout=60)
-    finally:
-        for t in timers:
-            t.cancel()
+    rc = launcher.launch([NodeSpec("stubborn", "stubborn")], env={"PATH": os.environ["PATH"]}, out=out,
+                         python=fake_python, stop_timeout=60)
     text = out.getvalue()
     assert rc == 1 and "sending SIGTERM" in text and "sending SIGKILL" in text, text
     assert time.monotonic() - t0 < 10                      # not 2 x stop_timeout
@@ -182,66 +195,84 @@ def test_launch_rejects_bad_graphs():
         launcher.launch([NodeSpec("a", "x"), NodeSpec("b", "x")])
 
 
-def test_cli_has_launch_and_play():
+def test_cli_has_launch_and_play(capsys):
     from uw_sil.cli import build_parser
 
     args = build_parser().parse_args(["launch", "backward", "--bag", "t.mcap", "--frames", "2", "--optimizer",
-                                      "cmaes", "--rate", "0.5", "--output-yaml", "f.yaml"])
+                                      "cmaes", "--rate", "0.5", "--output-yaml", "f.yaml", "--keep-running"])
     assert args.func is launcher.cmd_launch and args.graph == "backward" and args.rate == 0.5
+    assert args.frames == 2 and args.keep_running is True and args.loop is False and args.stride is None
+    # every option of `uw-sil launch backward` is a launch argument of the graph, checked the same way
+    for option, value in (("--frames", "abc"), ("--rate", "0"), ("--optimizer", "bogus"), ("--stride", "0")):
+        with pytest.raises(SystemExit):
+            build_parser().parse_args(["launch", "backward", option, value])
+        name = option[2:].replace("-", "_")
+        assert f"argument {name}:='{value}' is not valid: expected" in capsys.readouterr().err
     args = build_parser().parse_args(["play", "t.mcap", "--loop", "--rate", "2"])
     assert args.func is launcher.cmd_play and args.loop and args.rate == 2.0
     with pytest.raises(SystemExit):
         build_parser().parse_args(["play", "t.mcap", "--rate", "0"])
 
 
-def test_launch_file_maps_the_graph_to_launch_ros(monkeypatch):
-    """launch/launch_ros are not on PyPI: run backward.launch.py against minimal stand-ins that record
-    what it builds, to check that it passes the graph through (names, parameters, required -> Shutdown)."""
-    import importlib.util
-    import types
+# ------------------------------------------------------------------------------------------ graph arguments
 
-    class Recorder:
-        def __init__(self, *args, **kwargs):
-            self.args, self.kwargs = args, kwargs
+BACKWARD = graph.GRAPHS["backward"]
 
-    class LaunchConfiguration(Recorder):
-        def perform(self, context):
-            return context[self.args[0]]
 
-    class Shutdown(Recorder):
-        pass
+def test_graph_arguments_parse_launch_text_and_name_the_argument():
+    values = BACKWARD.parse({"frames": "5", "rate": "2.5", "keep_running": "True", "loop": "1", "bag": "b"})
+    assert values["frames"] == 5 and values["rate"] == 2.5 and values["keep_running"] is True
+    assert values["loop"] is True and values["bag"] == "b"
+    assert values["optimizer"] == "pso" and values["stride"] is None and values["max_iter"] is None  # defaults
+    for text, want in (("false", False), ("0", False), ("no", False), ("OFF", False), ("yes", True), ("on", True)):
+        assert BACKWARD.parse({"keep_running": text})["keep_running"] is want
+    for name, text, expected in (("frames", "abc", "an integer >= 1"), ("frames", "0", "an integer >= 1"),
+                                 ("frames", "2.5", "an integer >= 1"), ("rate", "0", "a number > 0"),
+                                 ("rate", "nan", "a number > 0"), ("keep_running", "maybe", "true or false"),
+                                 ("optimizer", "bogus", "one of pso, cmaes"), ("max_iter", "-1", "an integer >= 1")):
+        with pytest.raises(ValueError) as e:
+            BACKWARD.parse({name: text})
+        assert str(e.value) == f"argument {name}:={text!r} is not valid: expected {expected}"
+    with pytest.raises(ValueError, match="frames.*rate"):          # every bad argument is named at once
+        BACKWARD.parse({"frames": "x", "rate": "-1"})
+    with pytest.raises(ValueError, match="no argument.*framez"):
+        BACKWARD.parse({"framez": "3"})
 
-    fake = {"launch": types.ModuleType("launch"), "launch.actions": types.ModuleType("launch.actions"),
-            "launch.substitutions": types.ModuleType("launch.substitutions"),
-            "launch_ros": types.ModuleType("launch_ros"), "launch_ros.actions": types.ModuleType("launch_ros.actions")}
-    fake["launch"].LaunchDescription = lambda actions: actions
-    for name in ("DeclareLaunchArgument", "OpaqueFunction", "SetEnvironmentVariable"):
-        setattr(fake["launch.actions"], name, type(name, (Recorder,), {}))
-    fake["launch.actions"].Shutdown = Shutdown
-    fake["launch.substitutions"].LaunchConfiguration = LaunchConfiguration
-    fake["launch_ros.actions"].Node = type("Node", (Recorder,), {})
-    for k, v in fake.items():
-        monkeypatch.setitem(sys.modules, k, v)
-    path = graph.share_file("launch", "backward.launch.py")
-    spec = importlib.util.spec_from_file_location("backward_launch", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    actions = mod.generate_launch_description()
-    context = {a.args[0]: a.kwargs["default_value"] for a in actions if type(a).__name__ == "DeclareLaunchArgument"}
-    env = next(a for a in actions if type(a).__name__ == "SetEnvironmentVariable")
-    assert env.args == ("FASTDDS_DEFAULT_PROFILES_FILE", str(graph.share_file("config", "fastdds_shm.xml")))
-    opaque = next(a for a in actions if type(a).__name__ == "OpaqueFunction").kwargs["function"]
 
-    nodes = opaque(context)                                    # defaults: live graph, runs until stopped
-    assert [n.kwargs["name"] for n in nodes] == ["sim_camera", "backward_fit"]
-    assert all(n.kwargs["on_exit"] is None for n in nodes)
+def test_graph_arguments_describe_themselves():
+    for a in BACKWARD.arguments:
+        assert a.description and a.help.startswith(a.description)
+        assert a.parse(a.default_text) == a.default          # the launch file's default text gives the default
+    assert BACKWARD.argument("rate").help == "bag replay rate (2: twice as fast as recorded) (a number > 0; default 1.0)"
+    with pytest.raises(KeyError, match="no argument"):
+        BACKWARD.argument("nope")
 
-    context.update(bag="/d/t.mcap", max_iter="7", output_yaml="/d/fit.yaml")
-    nodes = {n.kwargs["name"]: n.kwargs for n in opaque(context)}
-    specs = {s.name: s for s in graph.backward_graph(bag="/d/t.mcap", max_iter=7, output_yaml="/d/fit.yaml")}
-    assert set(nodes) == set(specs)
-    for name, s in specs.items():
-        assert nodes[name]["executable"] == s.executable and nodes[name]["package"] == "uw_sil"
-        assert nodes[name]["parameters"] == [*s.param_files, s.parameters]
-        assert isinstance(nodes[name]["on_exit"], Shutdown) == s.required
-    assert isinstance(nodes["backward_fit"]["on_exit"], Shutdown)
+
+def test_graph_nodes_come_from_the_arguments():
+    specs = BACKWARD.nodes({"bag": "/d/t.mcap", "max_iter": "7", "output_yaml": "/d/fit.yaml", "loop": "true"})
+    want = graph.backward_graph(bag="/d/t.mcap", max_iter=7, output_yaml="/d/fit.yaml", loop=True)
+    assert specs == want
+    assert BACKWARD.nodes({}) == graph.backward_graph()         # no arguments: the builder's defaults
+
+
+def test_failure_reason_is_the_last_error_a_node_printed():
+    lines = ["[INFO] [1.0] [bag_play]: starting", "[ERROR] [1795368386.536] [bag_play]: bag /x does not exist",
+             "[INFO] [2.0] [bag_play]: bye"]
+    assert graph.failure_reason(lines) == "bag /x does not exist"
+    tb = ["Traceback (most recent call last):", '  File "x.py", line 1, in <module>',
+          "rclpy.exceptions.InvalidParameterValueException: Invalid parameter value (9.0) for parameter a_r"]
+    assert graph.failure_reason(lines + tb) == tb[-1]
+    assert graph.failure_reason(["[bag_play-3] [FATAL] [1.5] [bag_play]: out of memory"]) == "out of memory"
+    assert graph.failure_reason(["all good", "[WARN] [1.0] [n]: hm"]) == ""
+
+
+@pytest.mark.parametrize("name", sorted(graph.GRAPHS))
+def test_each_graph_has_a_generated_launch_file(name):
+    """launch/<graph>.launch.py is the graph's generated description (launchgen; run with the real launch tools
+    in test_ros2_tools): its arguments and nodes cannot drift from `uw-sil launch <graph>`."""
+    text = graph.share_file("launch", f"{name}.launch.py").read_text()
+    assert "from uw_sil.nodes.launchgen import generate" in text and f'return generate("{name}")' in text
+    g = graph.GRAPHS[name]
+    assert g.name == name and len({a.name for a in g.arguments}) == len(g.arguments)
+    for a in g.arguments:                  # each one documented in the launch file's usage line
+        assert f"{a.name}:=" in text, a.name

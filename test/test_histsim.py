@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from datapaths import SHARED_DATA
+from datapaths import TEST_DATA
 from uw_sil.metrics.histsim import (
     DEFAULT_BINS,
     HistogramReference,
@@ -14,7 +14,7 @@ from uw_sil.metrics.histsim import (
     rgb_to_hsv,
 )
 
-UW = SHARED_DATA / "real_underwater"
+UW = TEST_DATA / "real_underwater"
 
 
 # ---------------------------------------------------------------------------------------------
@@ -153,7 +153,7 @@ def test_channel_selection_colour_vs_luminance():
 
 
 def test_theta2_bounded_and_decreasing_with_colour_cast():
-    img = np.array(Image.open(UW / "euvp_funiegan_testA" / "5.jpg")).astype(np.float32)
+    img = np.array(Image.open(UW / "euvp_funiegan_testA" / "3.jpg")).astype(np.float32)
     vals = []
     for k in (0.0, 10.0, 25.0, 60.0):
         cast = np.clip(img + np.array([-k, 0.0, k], np.float32), 0, 255)
@@ -163,7 +163,7 @@ def test_theta2_bounded_and_decreasing_with_colour_cast():
 
 
 def test_reference_batch_and_mask():
-    img = np.array(Image.open(UW / "euvp_funiegan_testA" / "9.jpg"))
+    img = np.array(Image.open(UW / "euvp_funiegan_testA" / "1.jpg"))
     rng = np.random.default_rng(0)
     cands = np.clip(img[None] + rng.normal(0, 20, (3,) + img.shape), 0, 255).astype(np.float32)
     ref = HistogramReference(img)

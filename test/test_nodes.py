@@ -18,7 +18,9 @@ import numpy as np
 import pytest
 import yaml
 
-rclpy = pytest.importorskip("rclpy", reason="ROS 2 Python packages (the `ros` extra) are not installed")
+from conftest import import_or_skip  # noqa: E402  (skips locally, fails in CI when rclpy is missing)
+
+rclpy = import_or_skip("rclpy", reason="ROS 2 Python packages (the `ros` extra) are not installed")
 
 # rclpy's parameter machinery imports lark, which imports deprecated sre_* modules
 pytestmark = pytest.mark.filterwarnings("ignore:module 'sre_:DeprecationWarning")
@@ -215,6 +217,20 @@ def trial(tmp_path_factory):
     return out
 
 
+class TimedPublisher:
+    """Stands in for a publisher of bag_play: records when each message is handed to it (then publishes)."""
+
+    def __init__(self, pub, log):
+        self._pub, self._log = pub, log
+
+    def publish(self, data):
+        self._log.append(time.monotonic())
+        self._pub.publish(data)
+
+    def __getattr__(self, name):
+        return getattr(self._pub, name)
+
+
 def test_bag_play_replays_with_recorded_timing(ros, trial):
     from uw_sil.nodes.bag_play import BagPlayNode
 
@@ -229,6 +245,8 @@ def test_bag_play_replays_with_recorded_timing(ros, trial):
                                      qos)
     info_sub = listener.create_subscription(CameraInfo, "/camera/camera_info", lambda m: got.append("info"), 10)
     resume = listener.create_client(Trigger, "/bag_play/resume")
+    published = []
+    player.publishers_ = {t: TimedPublisher(p, published) for t, p in player.publishers_.items()}
     ex = SingleThreadedExecutor(context=ros)
     ex.add_node(player)
     ex.add_node(listener)
@@ -257,9 +275,16 @@ def test_bag_play_replays_with_recorded_timing(ros, trial):
     assert player.played == 24
     first = got[0][2]
     assert first >= t_resume[0] >= t0 + 0.35                  # nothing before ~/resume
-    # paced by the recorded receive times at rate 2 (12 frames 0.1 s apart: 0.55 s)
-    span = got[-1][2] - first
-    assert span == pytest.approx((recorded[-1][1] - recorded[0][1]) / 1e9 / rate, abs=0.15)
+    # Paced by the recorded receive times at rate 2 (12 frames 0.1 s apart: 0.55 s), checked on the times the
+    # player handed each message over, not on delivery (which a busy machine delays at random):
+    # never early -- message i no sooner than (its recorded offset) / rate after the resume request -- ...
+    assert len(published) == 24
+    due = [(t - recorded[0][1]) / 1e9 / rate for _, t in recorded]
+    assert all(p - t_resume[0] >= d - 1e-3 for p, d in zip(published, due)), list(zip(published, due))
+    # ... and on time: the schedule is absolute (a late message does not delay the next ones), so the median
+    # lateness stays small under load, while playing at rate 1 instead of 2 would make it 0.28 s
+    lateness = sorted(p - published[0] - d for p, d in zip(published, due))
+    assert lateness[len(lateness) // 2] < 0.1, lateness
 
 
 def test_bag_play_loops_and_publishes_the_bag_clock(ros, trial):
@@ -368,10 +393,11 @@ def test_backward_graph_refits_sim_camera_and_stops_on_ctrl_c(trial, tmp_path, m
         fitting = next(s for s in status if s.startswith("fitting"))
         for f in offline.frames:
             assert f"#{f.index} ({f.range_median:.2f} m" in fitting, fitting
-        np.testing.assert_allclose(UnderwaterParams.from_dict(live).as_vector(), offline.params.as_vector(),
-                                   rtol=1e-9, err_msg="the node's fit differs from the offline fit")
+        np.testing.assert_array_equal(UnderwaterParams.from_dict(live).as_vector(), offline.params.as_vector(),
+                                      err_msg="the node's fit differs from the offline fit")
         theta = status[-1].split("theta ")[1].split(" in ")[0].split(" -> ")
-        assert float(theta[1]) == pytest.approx(offline.theta_best, abs=1e-4) and float(theta[1]) > float(theta[0])
+        assert float(theta[1]) == pytest.approx(offline.theta_best, abs=5e-5)     # printed with 4 decimals
+        assert offline.theta_best >= offline.theta_x0           # never worse than the optimizer's start point
         # Ctrl-C: the launcher forwards SIGINT and every node ends cleanly
         assert proc.poll() is None, "the graph ended although --keep-running was given"
         proc.send_signal(signal.SIGINT)

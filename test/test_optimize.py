@@ -351,6 +351,47 @@ def test_callback_stop(method, how, capfd):
     assert capfd.readouterr().err == ""  # stopping does not raise through pyswarm's Fortran
 
 
+# the backends' own stopping rules, off to isolate the stop on convergence
+OWN_RULES_OFF = {"cmaes": {"cma_options": {"tolfun": 0, "tolx": 0}}, "pso": {"minfunc": 0.0, "minstep": 0.0}}
+
+
+@pytest.mark.parametrize("method", ["pso", "cmaes"])
+@pytest.mark.parametrize("tol, patience", [(1e-3, 5), (1e-5, 10), (1e-6, 3)])
+def test_stop_on_convergence_is_the_first_window_that_gained_at_most_tol(method, tol, patience, capfd):
+    n_calls = []
+
+    def obj(X):
+        n_calls.append(len(X))
+        return pseudo_noise(X)
+
+    r = optimize(obj, LO, HI, method=method, seed=2, tol=tol, patience=patience, **OWN_RULES_OFF[method])
+    check_consistency(r)
+    h = np.array(r.history_best_f)
+    gains = h[patience:] - h[:-patience]                 # gains over the windows ending at k = patience, ...
+    stops = np.flatnonzero(gains <= tol)
+    assert r.stop_reason == "converged" and r.n_iters == patience + stops[0] < 100
+    assert len(n_calls) == r.n_iters + 1                 # no evaluation after the stop
+    assert r.settings["patience"] == patience and r.to_dict()["patience"] == patience
+    assert capfd.readouterr().err == ""
+
+
+@pytest.mark.parametrize("method", ["pso", "cmaes"])
+def test_no_stop_on_convergence_by_default_or_with_patience_0(method):
+    for kw in ({}, {"patience": 0, "tol": 1.0}):
+        r = optimize(bowl, LO, HI, method=method, seed=0, max_iter=12, **OWN_RULES_OFF[method], **kw)
+        assert r.stop_reason == "max_iter" and r.n_iters == 12 and r.patience == 0
+    paper = optimize(bowl, LO, HI, method="pso", seed=0, max_iter=100)
+    assert paper.settings["paper_settings"] and not optimize(bowl, LO, HI, method="pso", seed=0, max_iter=100,
+                                                             patience=5).settings["paper_settings"]
+
+
+def test_convergence_options_are_checked():
+    with pytest.raises(ValueError, match="patience"):
+        optimize(bowl, LO, HI, patience=-1)
+    with pytest.raises(ValueError, match="patience"):
+        optimize(bowl, LO, HI, patience=2.5)
+
+
 @pytest.mark.parametrize("method", ["pso", "cmaes"])
 @pytest.mark.parametrize("where", ["callback", "objective"])
 def test_keyboard_interrupt_propagates_and_leaves_no_state(method, where):

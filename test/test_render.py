@@ -215,6 +215,24 @@ def test_flat_shading_returns_albedo():
     assert np.allclose(out.rgb[hit], np.array(color) / 255.0, atol=1e-6)
 
 
+def test_coplanar_surfaces_render_the_same_in_every_renderer():
+    # Two coplanar plates at the same node origin: every depth ties, and pyrender's draw order of
+    # tied nodes followed the memory addresses of its node objects, so the colour changed from one
+    # Renderer to the next. The plate earlier in the model must win, in every renderer.
+    red, green = _quad("plate_red", color=(255, 0, 0)), _quad("plate_green", color=(0, 255, 0))
+    both = trimesh.Scene()
+    for part in (red, green):
+        name = next(iter(part.geometry))
+        both.add_geometry(part.geometry[name], node_name=name, geom_name=name)
+    first = []
+    for _ in range(8):
+        with Renderer(both, camera=SMALL, shading="flat") as r:
+            out = r.render(S.facing_pose(2.0))
+        hit = out.part_ids > 0
+        assert hit.sum() > 1000
+        first.append((out.rgb[hit].mean(axis=0).round(6).tolist(), np.unique(out.part_ids[hit]).tolist()))
+    assert first == [([1.0, 0.0, 0.0], [1])] * 8
+
 def test_user_stl_and_labels(tmp_path):
     box = trimesh.creation.box(extents=(0.4, 0.3, 0.05))
     path = tmp_path / "user.stl"

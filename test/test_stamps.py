@@ -206,3 +206,78 @@ def test_validation_errors():
     with pytest.raises(TypeError, match="integer nanoseconds"):
         sync.add(0, 0.5, None)
     assert seconds_to_ns(float("inf")) is None and seconds_to_ns(0.25) == 250 * MS
+
+
+# ---------------------------------------------------------------------------------------------
+# The tolerance boundary: |dt| == max_dt pairs, one nanosecond more does not, max_dt = 0 keeps exact pairs
+
+
+def _boundary_cases():
+    tol = 50 * MS                                       # max_dt = 0.05 s is exactly 50_000_000 ns
+    t0 = 10**9
+    yield 0.05, t0, t0 + tol, True                      # later partner exactly at the tolerance
+    yield 0.05, t0, t0 - tol, True                      # earlier partner exactly at the tolerance
+    yield 0.05, t0, t0 + tol + 1, False                 # 1 ns beyond
+    yield 0.05, t0, t0 - tol - 1, False
+    yield 0.0, t0, t0, True                             # tolerance 0: exact stamps pair
+    yield 0.0, t0, t0 + 1, False                        # ... and nothing else
+
+
+@pytest.mark.parametrize("max_dt, t_img, t_pose, pairs", list(_boundary_cases()))
+def test_tolerance_boundary_offline(max_dt, t_img, t_pose, pairs):
+    stats = SyncStats()
+    m = pair_by_stamp([(t_img, "img")], [(t_pose, "pose")], max_dt=max_dt, stats=stats)
+    assert as_tuples(m) == ([(t_img, ("img", "pose"), (t_img, t_pose))] if pairs else [])
+    assert stats.dropped == (0 if pairs else 1)
+
+
+@pytest.mark.parametrize("pose_first", [True, False])
+@pytest.mark.parametrize("max_dt, t_img, t_pose, pairs", list(_boundary_cases()))
+def test_tolerance_boundary_online(max_dt, t_img, t_pose, pairs, pose_first):
+    expected = [(t_img, ("img", "pose"), (t_img, t_pose))] if pairs else []
+    # decided by later traffic on the pose stream (one second on), not by flush()
+    arrivals = [(0, t_img, "img"), (1, t_pose, "pose")]
+    if pose_first:
+        arrivals.reverse()
+    sync = StampSynchronizer(2, max_dt=max_dt)
+    decided = []
+    for k, t, x in arrivals + [(1, t_img + 10**9, "later")]:
+        decided += sync.add(k, t, x)
+    assert as_tuples(decided) == expected and sync.pending == 0
+    assert sync.stats.dropped == (0 if pairs else 1)
+    # and decided at the end of the input
+    sync = StampSynchronizer(2, max_dt=max_dt)
+    assert as_tuples(run_online(sync, arrivals)) == expected
+
+
+def test_tolerance_boundary_in_a_bag(tmp_path):
+    """read_samples: a pose exactly max_dt after its image pairs, one 1 ns further does not."""
+    from uw_sil.bags import Sample, read_samples, write_trial
+    from uw_sil.sim.camera import CameraModel
+
+    cam = CameraModel.from_fov(16, 12)
+    img = np.random.default_rng(0).integers(0, 256, (12, 16, 3), dtype=np.uint8)
+    t0 = 1_700_000_000_000_000_000
+    bag = write_trial(tmp_path / "b.mcap", [Sample(t0 + i * 10**9, img, cam, np.eye(4)) for i in range(3)],
+                      write_tf=False)
+    # the same bag with the poses moved: +50 ms, -50 ms, +50 ms + 1 ns
+    from rosbags.rosbag2 import Reader, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    ts = get_typestore(Stores.ROS2_KILTED)
+    shifted = tmp_path / "shifted"
+    with Reader(bag) as r, Writer(shifted, version=9) as w:
+        conns = {c.topic: w.add_connection(c.topic, c.msgtype, typestore=ts) for c in r.connections}
+        n = 0
+        for c, t, data in r.messages():
+            if c.topic == "/panel/pose":
+                msg = ts.deserialize_cdr(data, c.msgtype)
+                s = t + (50 * MS, -50 * MS, 50 * MS + 1)[n]
+                n += 1
+                msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(s, 10**9)
+                data = ts.serialize_cdr(msg, c.msgtype)
+            w.write(conns[c.topic], t, data)
+    stream = read_samples(shifted, max_dt=0.05)
+    assert [s.stamp_ns for s in stream] == [t0, t0 + 10**9]
+    assert stream.report.sync.dropped == 1
+    assert [s.stamp_ns for s in read_samples(bag, max_dt=0.0)] == [t0 + i * 10**9 for i in range(3)]

@@ -5,12 +5,12 @@ import pytest
 from PIL import Image
 from scipy.ndimage import gaussian_filter
 
-from datapaths import SHARED_DATA
+from datapaths import TEST_DATA
 from uw_sil.metrics.fsim import fsim
 from uw_sil.metrics.histsim import hsv_histogram_similarity
 from uw_sil.metrics.theta import ThetaReference, ThetaScores, mean_theta
 
-UW = SHARED_DATA / "real_underwater"
+UW = TEST_DATA / "real_underwater"
 
 
 def _img(name):

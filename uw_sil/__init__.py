@@ -12,7 +12,7 @@ Rooms (subpackages), each with its import rules in its ``__init__``:
 ``uw_sil.cli`` is the ``uw-sil`` command; ``uw_sil.viz`` draws figures. The names users type most
 are re-exported here lazily (importing uw_sil loads nothing heavy).
 """
-from importlib import import_module
+from ._shared.lazy import lazy_getattr
 
 __version__ = "0.1.0"
 
@@ -22,8 +22,4 @@ _EXPORTS = {
 }
 __all__ = sorted(_EXPORTS)
 
-
-def __getattr__(name):
-    if name in _EXPORTS:
-        return getattr(import_module(f".{_EXPORTS[name]}", __name__), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__getattr__ = lazy_getattr(__name__, _EXPORTS)

@@ -1,17 +1,25 @@
 """The ``uw-sil`` command: the core library's offline tools on ROS 2 bags.
 
-    uw-sil synth --out trial.mcap [--frames N] [--seed S] [--params a_r=0.4,...] [--storage mcap|sqlite3]
-                 [--effects NAME[=mild|strong],...]
-    uw-sil info trial.mcap
-    uw-sil fit --bag trial.mcap [--frames K] [--optimizer pso|cmaes] [--color-model rgb|hsv] [--channels HSV]
-               [--out fit.yaml] [--report DIR]
+    uw-sil synth --out trial.mcap [--frames N] [--seed S] [--params a_r=0.4,...|fit.yaml] [--storage mcap|sqlite3]
+                 [--effects NAME[=mild|strong],...] [--image-topic T] [--compressed jpeg|png]
+                 [--pose-in topic|tf|none] [--info-topic T|none] [--camera-yaml cam.yaml] [--distortion k1,...,k3]
+    uw-sil info trial.mcap [BAG SOURCE] [--check N]
+    uw-sil fit --bag trial.mcap [BAG SOURCE] [--frames K] [--optimizer pso|cmaes] [--color-model rgb|hsv]
+               [--channels HSV] [--out fit.yaml] [--report DIR]
     uw-sil enhance --bag trial.mcap --params fit.yaml --out enhanced.mcap [--method sil|dcp|udcp] [--b-from-frame]
     uw-sil features --bag trial.mcap --params fit.yaml [--frames I,J] [--csv table.csv] [--report DIR]
     uw-sil diagnose --bag trial.mcap [--frames K] [--json out.json] [--report DIR] [--params-out fit.yaml]
     uw-sil diagnose --images DIR_OR_BAG [--image-topic T] [--json out.json]   # footage without a scene model
     uw-sil demo [--out-dir out]          # synth -> contact sheet -> fit -> enhance -> features -> report
 
-Exit codes: 0 success, 1 bad input (message on stderr), 130 interrupted (no partial outputs left).
+BAG SOURCE (commands reading bags): [--image-topic T] [--info-topic T | --camera-info cam.yaml]
+           [--pose-from topic:/panel/pose | tf:CAMERA_FRAME:PANEL_FRAME | markers] [--refine-pose none|ecc]
+           [--model MESH]
+
+Exit codes: 0 success; 2 bad input or command line: a wrong, damaged or unusable input file or option
+value is reported as ONE line ``uw-sil: error: <file or option>: <what is wrong>`` on stderr (argparse's
+own syntax errors add a usage line), and no output is left; 130 interrupted (no partial outputs left).
+Anything else is a bug: Python's traceback and exit status 1.
 """
 from __future__ import annotations
 
@@ -20,43 +28,168 @@ import signal
 import sys
 import threading
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 
+from .fit.backward import FIT_PATIENCE, FIT_TOL
 from .sim.params import RGB_NAMES, UnderwaterParams
 
-__all__ = ["main", "build_parser"]
+__all__ = ["main", "build_parser", "EXIT_BAD_INPUT"]
+
+#: Exit status for a bad input file or option value (as argparse uses for command-line errors).
+EXIT_BAD_INPUT = 2
+
+# Errors of reading or validating an input: the user's to fix, reported as one line.
+_INPUT_ERRORS = (ValueError, FileNotFoundError, FileExistsError, IsADirectoryError, NotADirectoryError,
+                 PermissionError)
+
+
+class InputError(Exception):
+    """A bad input file or option value, already worded as ``<input>: <what is wrong>``."""
+
+
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+@contextmanager
+def _input(name):
+    """Errors of reading or checking the input ``name`` (a path or an option) become :class:`InputError`
+    whose message starts with the input (unless the message already starts with it or its bag directory)."""
+    try:
+        yield
+    except InputError:
+        raise
+    except _INPUT_ERRORS as exc:
+        msg = _one_line(exc)
+        names = {str(name)}
+        if not str(name).startswith("-"):
+            names.add(str(Path(name).with_suffix("")))     # trial.mcap -> the bag directory trial/
+        if not any(msg.startswith(n) and msg[len(n):len(n) + 1] in (":", "/", " ") for n in names):
+            msg = f"{name}: {msg}"
+        raise InputError(msg) from exc
+
+
+def _check_option(name: str, value, ok: bool, need: str):
+    if not ok:
+        raise InputError(f"{name}: must be {need}, got {value}")
 
 
 def _parse_params(text: str) -> UnderwaterParams:
     """``a_r=0.4,a_g=0.1,...`` (names from RGB_NAMES, missing ones from the default truth) or 7 numbers."""
     from .bags.synth import DEFAULT_TRUTH
 
+    def number(name, value):
+        try:
+            return float(value)
+        except ValueError:
+            raise ValueError(f"{name} must be a number, got {value.strip()!r}") from None
+
     text = text.strip()
     if "=" not in text:
-        vals = [float(v) for v in text.replace(",", " ").split()]
-        if len(vals) != 7:
-            raise ValueError(f"--params needs 7 numbers ({', '.join(RGB_NAMES)}) or name=value pairs")
-        return UnderwaterParams.from_vector(vals)
+        items = text.replace(",", " ").split()
+        if len(items) != 7:
+            raise ValueError(f"{len(items)} numbers given, 7 needed ({', '.join(RGB_NAMES)}), or name=value pairs")
+        return UnderwaterParams.from_vector([number(n, v) for n, v in zip(RGB_NAMES, items)])
     d = DEFAULT_TRUTH.as_dict()
     for item in filter(None, (s.strip() for s in text.split(","))):
         name, _, value = item.partition("=")
         name = name.strip()
         if name not in d:
             raise ValueError(f"unknown parameter {name!r}; known: {', '.join(RGB_NAMES)}")
-        d[name] = float(value)
+        d[name] = number(name, value)
     return UnderwaterParams.from_dict(d)
 
 
-def _progress_bar(total: int, desc: str):
-    from tqdm import tqdm
+def _synth_params(text: str):
+    """(params, fog mode or None) of ``--params``: name=value pairs, 7 numbers, or a parameters file."""
+    if Path(text).suffix in (".yaml", ".yml") or Path(text).is_file():
+        from .fit.backward import read_params_yaml
 
-    bar = tqdm(total=total, desc=desc, unit="frame", file=sys.stderr, disable=None)
+        with _input(text):
+            doc = read_params_yaml(text)
+        return doc["params"], doc["fog"]
+    with _input("--params"):
+        return _parse_params(text), None
+
+
+def _add_bag_source_args(parser, model: bool = True) -> None:
+    """Options saying how to read a (field) bag: image topic, intrinsics, pose source (and panel model).
+
+    Every command reading bags takes them (``info``, ``fit``, ...); :func:`_bag_source` turns the parsed
+    arguments into a :class:`uw_sil.bags.source.BagSource`. Defaults (None here) are the standard topics.
+    """
+    g = parser.add_argument_group("which data of the bag (field trials)")
+    g.add_argument("--image-topic", default=None,
+                   help="sensor_msgs/Image or CompressedImage topic (default /camera/image_raw)")
+    g.add_argument("--info-topic", default=None, help="sensor_msgs/CameraInfo topic (default /camera/camera_info)")
+    g.add_argument("--camera-info", metavar="CAMERA_YAML", default=None,
+                   help="camera intrinsics from a ROS camera_calibration YAML file instead of the info topic; "
+                        "plumb_bob distortion is removed from the frames (rectified with OpenCV)")
+    g.add_argument("--pose-from", default=None, metavar="SOURCE",
+                   help="panel pose: topic:/panel/pose (default), tf:CAMERA_FRAME:PANEL_FRAME (from /tf and "
+                        "/tf_static, interpolated to each image) or markers (the panel's ArUco markers)")
+    g.add_argument("--tf-tolerance", type=float, default=None, metavar="S",
+                   help="tf lookups may lie this far (s) outside the recorded transforms (default 0.1)")
+    g.add_argument("--refine-pose", choices=["none", "ecc"], default=None,
+                   help="ecc: refine topic/tf poses by aligning the rendered panel face with each frame "
+                        "(the fit needs sub-pixel poses; converges from ~2-3 cm, ~1.5 deg); markers always are")
+    if model:
+        g.add_argument("--model", default=None, metavar="MESH",
+                       help="panel mesh (default: the shipped intervention panel); for --pose-from markers "
+                            "its markers are declared in MESH's .markers.yaml next to it")
+
+
+_BAG_SOURCE_ARGS = ("image_topic", "info_topic", "camera_info", "pose_from", "tf_tolerance", "refine_pose")
+
+
+def _bag_source(args):
+    """The :class:`uw_sil.bags.source.BagSource` of options added by :func:`_add_bag_source_args`."""
+    from .bags.source import DEFAULT_IMAGE_TOPIC, DEFAULT_INFO_TOPIC, DEFAULT_POSE_TOPIC, BagSource, PoseFrom
+
+    from .bags.camera_yaml import load_camera_yaml
+
+    calib = None
+    if args.camera_info is not None:
+        with _input(args.camera_info):
+            calib = load_camera_yaml(args.camera_info)
+    with _input("--pose-from"):
+        pose_from = PoseFrom.parse(args.pose_from or f"topic:{DEFAULT_POSE_TOPIC}")
+    kw = dict(image_topic=args.image_topic or DEFAULT_IMAGE_TOPIC, info_topic=args.info_topic or DEFAULT_INFO_TOPIC,
+              camera_info=calib, pose_from=pose_from, model=getattr(args, "model", None))
+    if args.tf_tolerance is not None:
+        _check_option("--tf-tolerance", args.tf_tolerance, args.tf_tolerance >= 0, ">= 0 seconds")
+        kw["tf_extrapolation_s"] = args.tf_tolerance
+    if args.refine_pose is not None:
+        kw["refine_pose"] = args.refine_pose
+    with _input("--image-topic"):
+        return BagSource(**kw)
+
+
+def _pose_note(p) -> str:
+    """How a frame's pose was found, for a progress line (empty for a plain recorded pose)."""
+    p = p or {}
+    if p.get("source") == "markers":
+        return (f", pose from markers {p['ids']}: reprojection {p['reprojection_rms_px']:.2f} px RMS "
+                f"(max {p['reprojection_max_px']:.2f}), refined by {p['refinement']}")
+    if p.get("refinement") == "ecc":
+        return (f", pose from {p['source']} refined by ECC: moved {p['correction_mm']:.1f} mm, "
+                f"{p['correction_deg']:.2f} deg (correlation {p['ecc']:.3f})")
+    if "refinement" in p:
+        return f", pose from {p['source']}, {p['refinement']}"
+    return ""
+
+
+def _progress_bar(total: int, desc: str):
+    """A ``progress(done, total)`` callback drawing :func:`uw_sil._shared.progress.progress_bar` on stderr."""
+    from ._shared.progress import progress_bar
+
+    bar = progress_bar(total, desc, unit="frame", file=sys.stderr)
 
     def update(done, _total):
-        bar.n = done
-        bar.refresh()
+        bar.update(done - bar.n)
         if done >= _total:
             bar.close()
     return update
@@ -67,32 +200,59 @@ def cmd_synth(args) -> int:
     from .bags.synth import synthesize_trial, truth_path
 
     out = Path(args.out)
-    params = _parse_params(args.params) if args.params else None
-    camera = CameraModel.from_fov(args.width, args.height, args.hfov)
+    params, fog = _synth_params(args.params) if args.params else (None, None)
+    _check_option("--frames", args.frames, args.frames >= 1, ">= 1")
+    with _input("--width/--height/--hfov"):
+        camera = CameraModel.from_fov(args.width, args.height, args.hfov)
     kw = {} if params is None else {"params": params}
+    fmt = args.compressed or "raw"
+    image_topic = args.image_topic or ("/camera/image_raw" + ("/compressed" if fmt != "raw" else ""))
+    info_topic = None if (args.info_topic or "").lower() == "none" else (args.info_topic or "/camera/camera_info")
+    distortion = None
+    if args.distortion:
+        with _input("--distortion"):
+            distortion = [float(v) for v in args.distortion.replace(",", " ").split()]
+        _check_option("--distortion", args.distortion, len(distortion) == 5, "5 plumb_bob coefficients k1,k2,p1,p2,k3")
+    if info_topic is None and not args.camera_yaml:
+        raise InputError("--info-topic none: writes no camera_info, so --camera-yaml FILE is needed for the intrinsics")
     # The bag writer removes a partial bag when rendering fails or is interrupted; the truth sidecar
     # is written only after the bag is complete.
-    truth = synthesize_trial(out, n_frames=args.frames, seed=args.seed, camera=camera, storage=args.storage,
-                             fog=args.fog, start_m=args.start, end_m=args.end, effects=args.effects,
-                             progress=_progress_bar(args.frames, "render"), overwrite=args.force, **kw)
-    print(f"wrote bag {truth['bag']} ({args.frames} frames) and {truth_path(out)}")
+    with _input(args.out):
+        truth = synthesize_trial(out, n_frames=args.frames, seed=args.seed, camera=camera, storage=args.storage,
+                                 fog=args.fog or fog or "exp2", start_m=args.start, end_m=args.end,
+                                 effects=args.effects, progress=_progress_bar(args.frames, "render"),
+                                 overwrite=args.force, image_topic=image_topic, info_topic=info_topic,
+                                 image_format=fmt, jpeg_quality=args.jpeg_quality, pose_in=args.pose_in,
+                                 distortion=distortion, camera_yaml=args.camera_yaml, **kw)
+    print(f"wrote bag {truth['bag']} ({args.frames} frames) and {truth_path(out)}"
+          + (f" and {args.camera_yaml}" if args.camera_yaml else "") + f": images on {image_topic}, pose in "
+          f"{args.pose_in}")
     if args.contact_sheet:
-        _contact_sheet(out, Path(args.contact_sheet))
+        from .bags.source import BagSource
+
+        pose_from = {"topic": f"topic:{truth['pose_topic']}", "none": "markers",
+                     "tf": f"tf:{truth['camera_frame']}:{truth['panel_frame']}"}[args.pose_in]
+        source = BagSource(image_topic=image_topic, info_topic=info_topic, camera_info=args.camera_yaml,
+                           pose_from=pose_from)
+        _contact_sheet(out, Path(args.contact_sheet), source=source)
         print(f"wrote {args.contact_sheet}")
     return 0
 
 
-def _contact_sheet(bag: Path, png: Path, rows: int = 4):
-    from .bags import open_bag, read_samples
+def _contact_sheet(bag: Path, png: Path, rows: int = 4, source=None):
+    from .bags import open_bag
+    from .bags.source import BagSource
     from .sim.render import Renderer
     from .viz import contact_sheet, save_figure
 
-    n = open_bag(bag).topics["/camera/image_raw"].count
+    source = source or BagSource()
+    n = open_bag(bag).topics[source.image_topic].count
     pick = set(np.unique(np.linspace(0, n - 1, min(rows, n)).round().astype(int)).tolist())
     items = []
     renderer = None
     try:
-        for i, s in enumerate(read_samples(bag)):      # streamed: only the picked frames are kept
+        for s in source.read(bag):      # streamed: only the picked frames are kept
+            i = s.index
             if i not in pick:
                 continue
             renderer = renderer or Renderer(camera=s.camera)
@@ -106,9 +266,36 @@ def _contact_sheet(bag: Path, png: Path, rows: int = 4):
 
 def cmd_info(args) -> int:
     from .bags import open_bag
+    from .bags.source import describe_sources
 
-    info = open_bag(args.bag)
-    print(info.describe() if hasattr(info, "describe") else info)
+    with _input(args.bag):
+        info = open_bag(args.bag)
+        print(info.describe() if hasattr(info, "describe") else info)
+        print(describe_sources(args.bag))
+    if any(getattr(args, k) is not None for k in _BAG_SOURCE_ARGS) or args.check:
+        _check_option("--check", args.check, args.check >= 0, ">= 0")
+        source = _bag_source(args)
+        n = max(1, args.check or 5)
+        got = []
+        with _input(args.bag):
+            stream = source.read(args.bag)
+            try:
+                for s in stream:
+                    got.append(s)
+                    if len(got) >= n:
+                        break
+            finally:
+                stream.close()
+        rep = stream.report
+        print(f"reading {source.describe()}: {len(got)} frame(s) with a pose in the first "
+              f"{len(got) + len(rep.skipped)} image(s)")
+        for s in got:
+            print(f"  image #{s.index}: {s.camera.width}x{s.camera.height}, panel at "
+                  f"{np.linalg.norm(s.pose[:3, 3]):.2f} m{_pose_note(s.pose_info)}")
+        for i, _, why in rep.skipped:
+            print(f"  image #{i}: no pose: {why}")
+        for w in rep.warnings + rep.notes:
+            print(f"  note: {w}")
     return 0
 
 
@@ -126,9 +313,24 @@ def _sim_noise(text: str):
     if text in ("estimate", "none"):
         return text
     try:
-        return float(text)
+        value = float(text)
     except ValueError:
-        raise ValueError(f"--sim-noise must be 'estimate', 'none' or a number of grey levels, got {text!r}") from None
+        value = float("nan")
+    if not value >= 0 or value == float("inf"):
+        raise InputError(f"--sim-noise: must be 'estimate', 'none' or a number of grey levels, got {text!r}")
+    return value
+
+
+def _warn_if_damaged(bag) -> None:
+    """One warning line when the bag is cut off or damaged (the fit then uses every intact frame)."""
+    from .bags import open_bag
+
+    with _input(bag):
+        rep = open_bag(bag).report
+    if rep.truncated:
+        lost = f"; lost {rep.lost}" if rep.lost else ""
+        print(f"warning: {bag}: cut off or damaged: {rep.bytes_unreadable} of {rep.bytes_total} bytes unreadable"
+              f"{lost}; fitting the intact frames", file=sys.stderr)
 
 
 def cmd_fit(args) -> int:
@@ -136,31 +338,48 @@ def cmd_fit(args) -> int:
     from .fit.report import write_report
 
     methods = [args.optimizer] + ([m for m in ("pso", "cmaes") if m != args.optimizer] if args.compare else [])
+    _check_option("--frames", args.frames, args.frames >= 1, ">= 1")
+    _check_option("--stride", args.stride, args.stride >= 1, ">= 1")
+    _check_option("--min-coverage", args.min_coverage, 0 <= args.min_coverage < 1, "in [0, 1)")
+    _check_option("--max-iter", args.max_iter, args.max_iter is None or args.max_iter >= 1, ">= 1")
+    sim_noise = _sim_noise(args.sim_noise)
+    source = _bag_source(args)
+    _warn_if_damaged(args.bag)
     fits = []
     for m in methods:
         print(f"fitting with {m} ({args.color_model}, channels {args.channels}) ...", file=sys.stderr)
-        opts = {}
-        if args.max_iter is not None:
-            opts["max_iter"] = args.max_iter
-        fits.append(fit_bag(args.bag, k=args.frames, stride=args.stride, min_coverage=args.min_coverage,
-                            method=m, color_model=args.color_model, channels=args.channels, fog=args.fog,
-                            hist_pixels=args.hist_pixels, sim_noise=_sim_noise(args.sim_noise),
-                            x0=None if args.start == "centre" else args.start, callback=_raise_if_interrupted,
-                            seed=args.seed, progress=True, **opts))
+        opts = {name: getattr(args, name) for name in ("max_iter", "tol", "patience") if getattr(args, name) is not None}
+        with _input(args.bag):
+            fits.append(fit_bag(args.bag, k=args.frames, stride=args.stride, min_coverage=args.min_coverage,
+                                source=source, method=m, color_model=args.color_model, channels=args.channels, fog=args.fog,
+                                hist_pixels=args.hist_pixels, sim_noise=sim_noise,
+                                x0=None if args.start == "centre" else args.start, callback=_raise_if_interrupted,
+                                seed=args.seed, progress=True, **opts))
     _raise_if_interrupted()
     fit = fits[0]
+    rr = fit.read_report      # damage found while reading (a bad chunk, a bad record) was logged as a warning
+    for i, reason in fit.images_without_pose:
+        print(f"image #{i} has no pose: {reason}", file=sys.stderr)
     for i, reason in fit.skipped:
         print(f"skipped frame #{i}: {reason}", file=sys.stderr)
+    for f in fit.frames:
+        print(f"fit frame #{f.index} (image #{f.image_index}, {f.range_median:.2f} m, panel "
+              f"{100 * f.coverage:.0f}%){_pose_note(f.pose_info)}", file=sys.stderr)
     comment = (f"uw_sil backward fit of {args.bag}: {fit.optim.method}, theta {fit.theta_start:.4f} -> "
-               f"{fit.theta_best:.4f}, {fit.optim.n_evals} evaluations, {fit.wall_time_s:.1f} s")
-    write_params_yaml(args.out, fit.params, node_name=args.node_name, fog=args.fog, comment=comment,
-                      noise_sigma=fit.noise_level)
+               f"{fit.theta_best:.4f}, {fit.optim.n_evals} evaluations, {fit.optim.n_iters} iterations "
+               f"(stop: {fit.optim.stop_reason}), {fit.wall_time_s:.1f} s")
     summary = fit.summary()
     summary["bag"] = str(args.bag)
+    if rr is not None and (rr.truncated or rr.errors):
+        summary["bag_damage"] = {"truncated": rr.truncated, "lost": rr.lost, "errors": list(rr.errors)}
     if len(fits) > 1:
         summary["other_runs"] = [f.summary() for f in fits[1:]]
     summary_path = Path(args.summary) if args.summary else Path(args.out).with_suffix(".json")
-    write_json_atomic(summary_path, summary)
+    with _input(args.out):
+        write_params_yaml(args.out, fit.params, node_name=args.node_name, fog=args.fog, comment=comment,
+                          noise_sigma=fit.noise_level)
+    with _input(summary_path):
+        write_json_atomic(summary_path, summary)
     print(comment)
     print("fitted: " + ", ".join(f"{k}={v:.4f}" for k, v in fit.params.as_dict().items()))
     print(f"wrote {args.out} and {summary_path}")
@@ -399,10 +618,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", required=True, help="bag to write, e.g. trial.mcap")
     s.add_argument("--frames", type=int, default=30)
     s.add_argument("--seed", type=int, default=0)
-    s.add_argument("--params", help="ground truth: 'a_r=0.4,b_g=0.3,...' or 7 numbers " + " ".join(RGB_NAMES))
+    s.add_argument("--params", help="ground truth: 'a_r=0.4,b_g=0.3,...', 7 numbers " + " ".join(RGB_NAMES)
+                   + ", or a parameters file (.yaml) as `uw-sil fit` writes it")
     s.add_argument("--storage", choices=["mcap", "sqlite3"], default=None,
                    help="default: from the suffix of --out (.mcap or .db3; none: mcap)")
-    s.add_argument("--fog", choices=["exp2", "exp", "none"], default="exp2")
+    s.add_argument("--fog", choices=["exp2", "exp", "none"], default=None,
+                   help="fog mode (default: the parameters file's fog_mode, else exp2)")
     s.add_argument("--width", type=int, default=640)
     s.add_argument("--height", type=int, default=480)
     s.add_argument("--hfov", type=float, default=70.0, help="horizontal field of view in water [deg]")
@@ -414,14 +635,33 @@ def build_parser() -> argparse.ArgumentParser:
                    "marine_snow, camera_response, unmodeled_geometry, pose_error")
     s.add_argument("--contact-sheet", help="also write a PNG contact sheet here")
     s.add_argument("--force", action="store_true", help="overwrite an existing bag")
+    fs = s.add_argument_group("field-style bags")
+    fs.add_argument("--image-topic", default=None,
+                    help="image topic (default /camera/image_raw, with --compressed /camera/image_raw/compressed)")
+    fs.add_argument("--compressed", choices=["jpeg", "png"], default=None,
+                    help="write sensor_msgs/CompressedImage instead of raw rgb8 images")
+    fs.add_argument("--jpeg-quality", type=int, default=95)
+    fs.add_argument("--info-topic", default=None,
+                    help="camera_info topic (default /camera/camera_info); 'none': no camera_info (needs --camera-yaml)")
+    fs.add_argument("--camera-yaml", default=None, metavar="FILE",
+                    help="also write the camera's calibration as a ROS camera_calibration YAML file")
+    fs.add_argument("--distortion", default=None, metavar="K1,K2,P1,P2,K3",
+                    help="plumb_bob lens distortion of the synthetic camera, e.g. --distortion=-0.1,0.02,0,0,0")
+    fs.add_argument("--pose-in", choices=["topic", "tf", "none"], default="topic",
+                    help="record the panel pose as /panel/pose (default), only as a navigation tf tree "
+                         "(map->odom->base_link->camera_optical_frame, map->panel), or not at all (markers)")
     s.set_defaults(func=cmd_synth)
 
-    i = sub.add_parser("info", help="topics, counts and losses of a bag")
+    i = sub.add_parser("info", help="topics, counts and losses of a bag; image topics and pose sources")
     i.add_argument("bag")
+    _add_bag_source_args(i)
+    i.add_argument("--check", type=int, default=0, metavar="N",
+                   help="read the first N frames with the given source and say which have a pose")
     i.set_defaults(func=cmd_info)
 
     f = sub.add_parser("fit", help="backward optimization: fit the 7 parameters to a recording")
     f.add_argument("--bag", required=True)
+    _add_bag_source_args(f)
     f.add_argument("--frames", type=int, default=3, help="K: frames to fit (default 3)")
     f.add_argument("--stride", type=int, default=1, help="use every n-th frame (more ranges in the K frames)")
     f.add_argument("--min-coverage", type=float, default=0.02, help="skip frames where the panel covers less")
@@ -439,7 +679,12 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--start", choices=["linear", "water", "centre"], default="linear",
                    help="optimizer start: least-squares estimate of Eq. 1 (default), background from the "
                         "water only, or the centre of the bounds (the paper)")
-    f.add_argument("--max-iter", type=int, default=None)
+    f.add_argument("--max-iter", type=int, default=None, help="iterations at most (default 100)")
+    f.add_argument("--tol", type=float, default=None,
+                   help=f"stop on convergence: best theta gained <= TOL over --patience iterations (default {FIT_TOL:g})")
+    f.add_argument("--patience", type=int, default=None,
+                   help=f"window of the stop on convergence, in iterations (default {FIT_PATIENCE}); 0: no such stop "
+                        "(--optimizer pso --start centre --patience 0 is the paper's PSO exactly)")
     f.add_argument("--seed", type=int, default=0)
     f.add_argument("--out", default="fit.yaml", help="ROS 2 parameters file for the sim camera node")
     f.add_argument("--summary", help="JSON summary (default: next to --out)")
@@ -526,6 +771,22 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+@contextmanager
+def _warnings_to_stderr():
+    """The library's logged warnings (damaged bags, dropped frames...) as ``warning: ...`` lines on stderr."""
+    import logging
+
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setLevel(logging.WARNING)
+    handler.setFormatter(logging.Formatter("warning: %(message)s"))
+    logger = logging.getLogger("uw_sil")
+    logger.addHandler(handler)
+    try:
+        yield
+    finally:
+        logger.removeHandler(handler)
+
+
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     interrupted = _INTERRUPTED
@@ -537,16 +798,17 @@ def main(argv=None) -> int:
 
     previous = signal.signal(signal.SIGINT, on_sigint) if threading.current_thread() is threading.main_thread() else None
     try:
-        return args.func(args)
+        with _warnings_to_stderr():
+            return args.func(args)
     except KeyboardInterrupt:
         print("interrupted: no output written", file=sys.stderr)
         return 130
-    except (ValueError, FileNotFoundError, FileExistsError) as e:
+    except (InputError, *_INPUT_ERRORS) as e:
         if interrupted:   # Ctrl-C inside a third-party import or callback may surface as another error
             print("interrupted: no output written", file=sys.stderr)
             return 130
-        print(f"uw-sil {args.command}: error: {e}", file=sys.stderr)
-        return 1
+        print(f"uw-sil: error: {_one_line(e)}", file=sys.stderr)
+        return EXIT_BAD_INPUT
     except Exception:
         if interrupted:
             print("interrupted: no output written", file=sys.stderr)

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["check_image", "check_mask", "check_values"]
+__all__ = ["as_unit_rgb", "check_image", "check_mask", "check_values"]
 
 
 def check_values(arr: np.ndarray, name: str) -> None:
@@ -61,3 +61,28 @@ def check_mask(mask, shape) -> np.ndarray:
     if m.shape != tuple(shape):
         raise ValueError(f"mask must have shape {tuple(shape)}, got {m.shape}")
     return m
+
+
+def as_unit_rgb(image, dtype=np.float32) -> np.ndarray:
+    """An RGB image ``(H, W, 3)`` as floats of ``dtype`` on the [0, 1] scale.
+
+    uint8 is scaled by 1/255; floats must be finite and within [0, 1] (1e-6 of slack, then clipped).
+    Anything else raises ValueError naming what is wrong.
+    """
+    arr = np.asarray(image)
+    if arr.ndim != 3 or arr.shape[2] != 3:
+        raise ValueError(f"image must be an RGB array of shape (H, W, 3), got shape {arr.shape}")
+    if arr.shape[0] < 1 or arr.shape[1] < 1:
+        raise ValueError(f"image must not be empty, got shape {arr.shape}")
+    if arr.dtype == np.uint8:
+        if np.dtype(dtype) == np.float32:
+            return arr.astype(np.float32) * np.float32(1.0 / 255.0)
+        return arr.astype(dtype) / 255.0
+    if not np.issubdtype(arr.dtype, np.floating):
+        raise ValueError(f"image dtype must be uint8 (0-255) or floating point (0-1), got {arr.dtype}")
+    if not np.isfinite(arr).all():
+        raise ValueError("image contains NaN or infinite values")
+    lo, hi = float(arr.min()), float(arr.max())
+    if lo < -1e-6 or hi > 1.0 + 1e-6:
+        raise ValueError(f"float image values must lie in [0, 1], found [{lo:.4g}, {hi:.4g}]")
+    return np.clip(arr.astype(dtype, copy=False), 0.0, 1.0)

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = ["SUPPORTED_ENCODINGS", "image_to_rgb", "rgb_to_image_fields", "depth_to_image_fields", "compressed_to_rgb",
-           "message_bytes", "image_to_depth", "image_to_mono"]
+           "message_bytes", "image_to_depth", "image_to_mono", "rgb_to_compressed"]
 
 # encoding -> (channels, order of R, G, B among the channels); mono is replicated.
 _LAYOUT = {
@@ -208,3 +208,35 @@ def compressed_to_rgb(msg) -> np.ndarray:
     if img.shape[2] == 4:
         return np.ascontiguousarray(img[:, :, 2::-1])
     return np.ascontiguousarray(img[:, :, ::-1])
+
+
+def rgb_to_compressed(arr: np.ndarray, fmt: str = "jpeg", quality: int = 95) -> bytes:
+    """Encode an RGB (or grey) uint8 image as the payload of a ``sensor_msgs/CompressedImage``.
+
+    Parameters
+    ----------
+    arr : ndarray
+        (H, W, 3) uint8 RGB or (H, W) uint8 grey.
+    fmt : {'jpeg', 'png'}
+        The message's ``format`` field should say the same (``compressed_image_transport`` writes
+        ``"jpeg"`` / ``"png"``, or ``"rgb8; jpeg compressed bgr8"``).
+    quality : int
+        JPEG quality 1..100 (ignored for PNG, which is lossless).
+
+    Returns
+    -------
+    bytes
+    """
+    import cv2
+
+    a = np.asarray(arr)
+    if a.dtype != np.uint8 or not (a.ndim == 2 or (a.ndim == 3 and a.shape[2] == 3)) or 0 in a.shape:
+        raise ValueError(f"image must be a non-empty (H, W, 3) or (H, W) uint8 array, got {a.dtype} {a.shape}")
+    if fmt not in ("jpeg", "png"):
+        raise ValueError(f"compressed format must be 'jpeg' or 'png', got {fmt!r}")
+    bgr = a if a.ndim == 2 else np.ascontiguousarray(a[:, :, ::-1])
+    params = [cv2.IMWRITE_JPEG_QUALITY, int(quality)] if fmt == "jpeg" else [cv2.IMWRITE_PNG_COMPRESSION, 3]
+    ok, buf = cv2.imencode(".jpg" if fmt == "jpeg" else ".png", bgr, params)
+    if not ok:
+        raise ValueError(f"OpenCV could not encode the image as {fmt}")
+    return buf.tobytes()

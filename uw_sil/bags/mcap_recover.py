@@ -281,9 +281,9 @@ def iter_mcap(path, topics=None, report: McapScanReport | None = None) -> Iterat
     with path.open("rb") as f:
         size = report.size = path.stat().st_size
         if size == 0:
-            raise McapFormatError(f"{path} is empty (0 bytes): not an MCAP file")
+            raise McapFormatError(f"{path}: empty (0 bytes), not an MCAP file")
         if f.read(8) != MAGIC:
-            raise McapFormatError(f"{path} does not start with the MCAP magic: not an MCAP file")
+            raise McapFormatError(f"{path}: does not start with the MCAP magic, not an MCAP file")
         pos = report.good_bytes = 8
         in_summary = False
         while True:

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import logging
 import re
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator, NamedTuple
@@ -31,13 +32,12 @@ from typing import Iterator, NamedTuple
 import numpy as np
 import yaml
 
-from ..sim.camera import CameraModel
 from ..sim.transforms import pose_to_matrix
 from .imgmsg import compressed_to_rgb, image_to_rgb
 from .mcap_recover import McapFormatError, McapScanReport, iter_mcap, read_mcap_summary
 from .records import (CAMERA_INFO_TYPE, COMPRESSED_IMAGE_TYPE, IMAGE_TYPE, POSE_TYPE, STORAGE_SUFFIX, BagError,
                       Sample)
-from .stamps import StampSynchronizer, SyncStats
+from .stamps import StampSynchronizer, SyncStats, seconds_to_ns
 
 __all__ = [
     "TopicInfo", "ReadReport", "BagInfo", "RawMessage", "open_bag", "iter_raw", "iter_messages", "read_samples",
@@ -94,6 +94,12 @@ class ReadReport:
         Samples yielded by :func:`read_samples`.
     finished : bool
         The whole bag was read (the numbers are final).
+    skipped : list of (int, int, str)
+        Frames of :func:`read_samples` without a pose: (index in the image topic, stamp ns, reason).
+    pose_source, camera_source : str
+        Where :func:`read_samples` took poses and intrinsics from.
+    notes : list of str
+        What was done to the data on the way (e.g. frames rectified with the calibration's distortion).
     """
 
     path: str
@@ -111,6 +117,22 @@ class ReadReport:
     sync: SyncStats | None = None
     samples: int = 0
     finished: bool = False
+    skipped: list = field(default_factory=list)
+    pose_source: str = ""
+    camera_source: str = ""
+    notes: list = field(default_factory=list)
+
+    def skip_summary(self, examples: int = 1) -> str:
+        """Skipped frames per reason (reasons grouped by their text before any number), e.g. for messages."""
+        groups: dict = {}
+        for i, _, why in self.skipped:
+            key = re.split(r"[\d(]", why, maxsplit=1)[0].strip()
+            groups.setdefault(key, []).append((i, why))
+        parts = []
+        for items in groups.values():
+            eg = "; ".join(f"#{i}: {w}" for i, w in items[:examples])
+            parts.append(f"{len(items)} x ({eg})")
+        return ", ".join(parts)
 
     @property
     def lost(self) -> dict:
@@ -142,7 +164,10 @@ class ReadReport:
             s = self.sync
             lines.append(f"  samples: {self.samples} from {s.received[0]} images ({s.exact} exact stamp matches, "
                          f"{s.dropped} images without partner, {s.forced} decided early)")
+        if self.skipped:
+            lines.append(f"  frames without a pose ({self.pose_source}): {len(self.skipped)}: {self.skip_summary()}")
         lines += [f"  error: {e}" for e in self.errors] + [f"  warning: {w}" for w in self.warnings]
+        lines += [f"  note: {n}" for n in self.notes]
         return "\n".join(lines)
 
 
@@ -233,7 +258,7 @@ def resolve_bag_path(path) -> Path:
         d = p.with_suffix("")
         if p.suffix in (".mcap", ".db3") and (d / p.name).is_file():
             return d
-        raise FileNotFoundError(f"bag {p} does not exist")
+        raise FileNotFoundError(f"{p}: does not exist (expected a bag directory, a .mcap or a .db3 file)")
     return p
 
 
@@ -248,7 +273,7 @@ def _layout(path) -> _Layout:
                 storage = meta["storage_identifier"]
                 rel = list(meta["relative_file_paths"])
             except (yaml.YAMLError, OSError, KeyError, TypeError) as exc:
-                raise BagError(f"{meta_path} is not a readable rosbag2 metadata file: {exc!r}") from None
+                raise BagError(f"{meta_path}: not a readable rosbag2 metadata file: {_one_line(exc)}") from None
             if storage not in STORAGE_SUFFIX:
                 raise BagError(f"{p}: storage {storage!r} is not supported (supported: mcap, sqlite3)")
             files = [p / Path(x).name for x in rel]
@@ -264,9 +289,9 @@ def _layout(path) -> _Layout:
                  for s, suf in STORAGE_SUFFIX.items()}
         kinds = [s for s, fs in found.items() if fs]
         if not kinds:
-            raise BagError(f"{p} is not a ROS 2 bag: no metadata.yaml and no .mcap or .db3 file in it")
+            raise BagError(f"{p}: not a ROS 2 bag: no metadata.yaml and no .mcap or .db3 file in it")
         if len(kinds) > 1:
-            raise BagError(f"{p} has no metadata.yaml and holds both .mcap and .db3 files: pass one file")
+            raise BagError(f"{p}: no metadata.yaml, and both .mcap and .db3 files in it: pass one file")
         log.warning("%s has no metadata.yaml (recording not closed?): reading its %s file(s) directly", p,
                     kinds[0])
         return _Layout(p, kinds[0], found[kinds[0]], None)
@@ -274,7 +299,7 @@ def _layout(path) -> _Layout:
     if kind is None:
         size = p.stat().st_size
         what = "an empty file" if size == 0 else "neither an MCAP nor an SQLite file"
-        raise BagError(f"{p} is not a ROS 2 bag: {what} (expected a bag directory, a .mcap or a .db3 file)")
+        raise BagError(f"{p}: not a ROS 2 bag: {what} (expected a bag directory, a .mcap or a .db3 file)")
     return _Layout(p, kind, [p], None)
 
 
@@ -345,11 +370,14 @@ class _Types:
 # Reading raw messages
 
 
-def _merge_mcap(report: ReadReport, r: McapScanReport) -> None:
+def _merge_mcap(report: ReadReport, r: McapScanReport, stopped_early: bool = False) -> None:
+    """Add a file's scan to ``report``. When the reader stopped early, the unread rest of the file is not a
+    sign of damage: only damage found so far counts."""
     for t, n in r.messages.items():
         report.read[t] = report.read.get(t, 0) + n
-    report.bytes_unreadable += r.bytes_unreadable
-    if r.truncated or r.skipped_chunks:
+    if not stopped_early:
+        report.bytes_unreadable += r.bytes_unreadable
+    if (r.truncated and not stopped_early) or r.skipped_chunks or r.errors:   # cut off or damaged: messages lost
         report.truncated = True
     report.errors += [f"{Path(r.path).name}: {e}" for e in r.errors]
 
@@ -360,22 +388,26 @@ def _raw_stream(layout: _Layout, topics, report: ReadReport, types: _Types | Non
     if layout.storage == "mcap":
         for f in layout.files:
             r = McapScanReport(str(f))
+            early = True
             try:
                 for m in iter_mcap(f, want, r):
                     ch = m.channel
                     if not ch.msgtype:
                         raise BagError(f"{f}: topic {ch.topic} has no schema (message type unknown)")
                     if ch.message_encoding != "cdr":
-                        raise BagError(f"{ch.topic}: message encoding {ch.message_encoding!r} is not ROS 2 CDR")
+                        raise BagError(f"{f}: topic {ch.topic}: message encoding {ch.message_encoding!r} is not "
+                                       f"ROS 2 CDR")
                     if types is not None:
                         types.add(ch.msgtype, ch.schema_encoding, ch.schema_data)
                     yield ch.topic, ch.msgtype, m.log_time, m.data
+                early = False
             except McapFormatError as exc:
                 raise BagError(str(exc)) from None
-            _merge_mcap(report, r)
-            if r.truncated:
-                log.warning("%s is cut off or damaged: read %d complete messages, %d of %d bytes unreadable (%s)",
-                            f, sum(r.messages.values()), r.bytes_unreadable, r.size, "; ".join(r.errors))
+            finally:  # also when the reader stops early: the report tells what was read and found so far
+                _merge_mcap(report, r, stopped_early=early)
+                if (r.truncated and not early) or r.skipped_chunks or r.errors:
+                    log.warning("%s is cut off or damaged: read %d complete messages, %d of %d bytes unreadable "
+                                "(%s)", f, sum(r.messages.values()), r.bytes_unreadable, r.size, "; ".join(r.errors))
         return
     from rosbags.interfaces import MessageDefinitionFormat
 
@@ -417,6 +449,14 @@ def _sqlite_units(layout):
         yield unit
 
 
+def _one_line(exc: Exception) -> str:
+    """An exception's message on one line; for a YAML syntax error the problem and where it is."""
+    mark, problem = getattr(exc, "problem_mark", None), getattr(exc, "problem", None)
+    if mark is not None and problem:
+        return f"YAML syntax error: {problem} (line {mark.line + 1}, column {mark.column + 1})"
+    return " ".join(str(exc).split()) or type(exc).__name__
+
+
 def _sqlite_errors() -> tuple:
     """Exceptions SQLite raises through rosbags (it uses apsw, and may use the standard module)."""
     import sqlite3
@@ -429,7 +469,7 @@ def _sqlite_errors() -> tuple:
 
 
 def _sqlite_open_error(root: Path, exc: Exception) -> str:
-    return (f"cannot open sqlite3 bag {root}: {exc} (a damaged or cut-off sqlite3 file cannot be read here; "
+    return (f"{root}: cannot open sqlite3 bag: {exc} (a damaged or cut-off sqlite3 file cannot be read here; "
             f"SQLite's own `sqlite3 in.db3 .recover | sqlite3 out.db3` may salvage it)")
 
 
@@ -481,7 +521,7 @@ def _open_layout(layout: _Layout) -> BagInfo:
             try:
                 summ = read_mcap_summary(f)
             except OSError as exc:
-                raise BagError(f"cannot read {f}: {exc}") from None
+                raise BagError(f"{f}: cannot read: {exc}") from None
             if summ is not None:
                 for t, ch in summ.channels.items():
                     types[t] = ch.msgtype
@@ -533,6 +573,17 @@ def _open_layout(layout: _Layout) -> BagInfo:
     return BagInfo(layout.root, layout.storage, [str(f) for f in layout.files], topics, start, end, rep)
 
 
+@contextmanager
+def _located(root: Path):
+    """Errors found while reading a bag start with the bag's path (``<bag>: <topic> at stamp ...``)."""
+    try:
+        yield
+    except BagError as exc:
+        if str(exc).startswith(str(root)):
+            raise
+        raise BagError(f"{root}: {exc}") from None
+
+
 class _Stream:
     """An iterator with a :class:`ReadReport` (final once exhausted); usable as a context manager."""
 
@@ -561,14 +612,14 @@ class _Stream:
 def _check_topics(info: BagInfo, wanted: dict) -> None:
     """``wanted``: topic -> allowed types (empty tuple: any)."""
     if not info.topics:
-        raise BagError(f"bag {info.path} has no topics (empty bag)")
+        raise BagError(f"{info.path}: no topics (empty bag)")
     for topic, allowed in wanted.items():
         if topic not in info.topics:
             have = ", ".join(f"{t.name} [{t.msgtype}]" for t in sorted(info.topics.values(), key=lambda x: x.name))
-            raise BagError(f"topic {topic!r} is not in bag {info.path}; it has: {have}")
+            raise BagError(f"{info.path}: topic {topic!r} is not in the bag; it has: {have}")
         mt = info.topics[topic].msgtype
         if allowed and mt not in allowed:
-            raise BagError(f"topic {topic!r} has type {mt}, expected {' or '.join(allowed)}")
+            raise BagError(f"{info.path}: topic {topic!r} has type {mt}, expected {' or '.join(allowed)}")
 
 
 def iter_raw(path, topics=None) -> Iterator[RawMessage]:
@@ -620,8 +671,9 @@ def iter_messages(path, topic: str) -> Iterator[tuple]:
     types = _Types()
 
     def gen():
-        for _, msgtype, t, data in _raw_stream(layout, [topic], rep, types):
-            yield t, types.deserialize(data, msgtype)
+        with _located(layout.root):
+            for _, msgtype, t, data in _raw_stream(layout, [topic], rep, types):
+                yield t, types.deserialize(data, msgtype)
         rep.finished = True
 
     return _Stream(gen(), rep)
@@ -636,33 +688,43 @@ def _stamp_ns(stamp) -> int:
 
 
 class _SampleBuilder:
-    def __init__(self, topics, check_frames: bool, report: ReadReport):
-        self.image_topic, self.info_topic, self.pose_topic = topics
+    """Turns paired messages into :class:`Sample` objects: decode, calibrate (rectify), pose."""
+
+    def __init__(self, image_topic, info_topic, pose_from, calibration, check_frames: bool, report: ReadReport,
+                 tf_buffer=None, markers=None, aligner=None):
+        self.image_topic, self.info_topic = image_topic, info_topic
+        self.pose_from = pose_from
+        self.pose_topic = pose_from.topic if pose_from.kind == "topic" else None
+        self.file_calibration = calibration
         self.check_frames = check_frames
         self.report = report
-        self._cams: dict = {}
+        self.tf = tf_buffer
+        self.markers = markers
+        self.aligner = aligner
+        self._calibs: dict = {}
+        self._rectifiers: dict = {}
+        self.marker_poses = 0
 
     def camera(self, msg, t: int):
+        """Calibration of a camera_info message (cached), and its frame."""
+        from .camera_yaml import CameraCalibration
+
         fid = str(msg.header.frame_id)
-        key = (int(msg.width), int(msg.height), tuple(float(x) for x in msg.k), fid)
-        cam = self._cams.get(key)
-        if cam is None:
+        key = (int(msg.width), int(msg.height), tuple(float(x) for x in msg.k), tuple(float(x) for x in msg.d),
+               str(msg.distortion_model), tuple(float(x) for x in msg.r), tuple(float(x) for x in msg.p))
+        calib = self._calibs.get(key)
+        if calib is None:
             try:
-                cam = CameraModel.from_k(key[0], key[1], key[2], frame_id=fid or "camera_optical_frame")
+                calib = CameraCalibration.from_camera_info(msg, source=self.info_topic)
             except ValueError as exc:
                 raise BagError(f"{self.info_topic} at stamp {t} ns is not a usable calibration "
                                f"(uncalibrated camera?): {exc}") from None
-            d = np.asarray(msg.d, dtype=float)
-            if d.size and np.any(d != 0):
-                self._warn(f"{self.info_topic} has distortion coefficients ({msg.distortion_model}: "
-                           f"{np.round(d, 4).tolist()}); the images are read as they are (not rectified) while "
-                           f"CameraModel is an undistorted pinhole: use a rectified topic (image_rect)")
             if int(msg.binning_x) > 1 or int(msg.binning_y) > 1:
-                self._warn(f"{self.info_topic} declares binning {msg.binning_x}x{msg.binning_y}: ignored")
-            self._cams[key] = cam
-        return cam, fid
+                self.warn(f"{self.info_topic} declares binning {msg.binning_x}x{msg.binning_y}: ignored")
+            self._calibs[key] = calib
+        return calib, fid
 
-    def pose(self, msg, t: int):
+    def pose_msg(self, msg, t: int):
         p, q = msg.pose.position, msg.pose.orientation
         try:
             T = pose_to_matrix([p.x, p.y, p.z], [q.x, q.y, q.z, q.w])
@@ -670,39 +732,133 @@ class _SampleBuilder:
             raise BagError(f"{self.pose_topic} at stamp {t} ns: {exc}") from None
         return T, str(msg.header.frame_id)
 
-    def _warn(self, text: str) -> None:
+    def warn(self, text: str) -> None:
+        """Add ``text`` to the report's warnings and log it (once per distinct text)."""
         if text not in self.report.warnings:
             self.report.warnings.append(text)
             log.warning(text)
 
-    def sample(self, match) -> Sample:
-        t = match.stamp_ns
-        (msgtype, img_msg), (cam, info_frame), (T, pose_frame) = match.items
+    def _note(self, text: str) -> None:
+        if text not in self.report.notes:
+            self.report.notes.append(text)
+            log.info(text)
+
+    def _rectify(self, img, calib, t: int):
+        if not calib.has_distortion:
+            return img
+        if any(seg.startswith("image_rect") for seg in self.image_topic.split("/")):
+            return img     # image_rect, image_rect_color(/compressed): rectified by image_proc, P is its camera
+        r = self._rectifiers.get(id(calib))
+        if r is None:
+            r = self._rectifiers[id(calib)] = calib.rectifier()
+            self._note(f"{calib.source or 'the calibration'} has distortion ({calib.distortion_model}: "
+                       f"{np.round(calib.D, 4).tolist()}): frames of {self.image_topic} are rectified (OpenCV, "
+                       f"K, D, R -> P) and simulated with P's pinhole")
+            if r.outside_fraction > 0.005:
+                self.warn(f"rectified frames have {100 * r.outside_fraction:.1f}% of their pixels outside the raw "
+                           f"image (P computed with alpha > 0): those repeat the border")
+        return r(img)
+
+    #: Largest corrections accepted from the face alignment of a topic/tf pose (beyond: a false optimum).
+    MAX_CORRECTION_DEG = 5.0
+    MAX_CORRECTION_REL = 0.1
+
+    def _refine(self, img, cam, T, info):
+        """Refine a recorded pose by aligning the rendered panel face with the frame (``refine_pose='ecc'``)."""
+        from scipy.spatial.transform import Rotation
+
+        al = self.aligner.refine(img, cam, T, levels=(2, 1, 1))
+        if al.T is None:
+            return T, {**info, "refinement": f"none (ECC refinement refused: {al.reason})"}
+        dt = float(np.linalg.norm(al.T[:3, 3] - T[:3, 3]))
+        da = float(np.degrees(Rotation.from_matrix(T[:3, :3].T @ al.T[:3, :3]).magnitude()))
+        rng = float(np.linalg.norm(T[:3, 3]))
+        if da > self.MAX_CORRECTION_DEG or dt > self.MAX_CORRECTION_REL * rng:
+            return T, {**info, "refinement": f"none (ECC refinement refused: it moved the pose by {1000 * dt:.0f} mm "
+                                             f"and {da:.1f} deg, more than {self.MAX_CORRECTION_DEG:g} deg or "
+                                             f"{100 * self.MAX_CORRECTION_REL:g}% of the range)"}
+        return al.T, {**info, "refinement": "ecc", "ecc": al.ecc, "correction_mm": 1000 * dt, "correction_deg": da}
+
+    def sample(self, index: int, t: int, image_item, info_item, pose_item):
+        """A Sample, or (None, reason) for a frame without a pose."""
+        msgtype, img_msg = image_item
         try:
             img = image_to_rgb(img_msg) if msgtype == IMAGE_TYPE else compressed_to_rgb(img_msg)
         except (ValueError, TypeError) as exc:
-            raise BagError(f"{self.image_topic} at stamp {t} ns: {exc}") from None
+            raise BagError(f"{self.image_topic} at stamp {t} ns: {exc} (image #{index})") from None
+        frame = str(img_msg.header.frame_id)
+        if info_item is not None:
+            calib, info_frame = info_item
+            what = f"{self.info_topic} says"
+        else:
+            calib, info_frame = self.file_calibration, ""
+            what = f"camera calibration {calib.source} is for"
+        if (img.shape[1], img.shape[0]) != (calib.width, calib.height):
+            raise BagError(f"{self.image_topic} at stamp {t} ns is {img.shape[1]}x{img.shape[0]} but "
+                           f"{what} {calib.width}x{calib.height} (image #{index})")
+        raw = img
+        img = self._rectify(img, calib, t)
         if not img.flags.writeable or not img.flags.c_contiguous:
             img = np.array(img, order="C")
-        frame = str(img_msg.header.frame_id)
-        if img.shape[:2] != cam.shape:
-            raise BagError(f"{self.image_topic} at stamp {t} ns is {img.shape[1]}x{img.shape[0]} but "
-                           f"{self.info_topic} says {cam.width}x{cam.height}")
-        if self.check_frames:
-            for name, other in ((self.info_topic, info_frame), (self.pose_topic, pose_frame)):
-                if frame and other and other != frame:
-                    raise BagError(f"frame mismatch at stamp {t} ns: {self.image_topic} is in {frame!r} but "
-                                   f"{name} is in {other!r}; the pose must be T_cam_panel in the image's optical "
-                                   f"frame (pass check_frames=False to accept it anyway)")
-        if frame and cam.frame_id != frame:
-            cam = CameraModel(cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy, frame)
-        return Sample(t, img, cam, T.copy(), frame or cam.frame_id)
+        cam = calib.rectified_camera(frame or info_frame or "camera_optical_frame")
+        if self.check_frames and info_frame and frame and info_frame != frame:
+            raise BagError(f"frame mismatch at stamp {t} ns: {self.image_topic} is in {frame!r} but "
+                           f"{self.info_topic} is in {info_frame!r} (pass check_frames=False to accept it anyway)")
+        kind = self.pose_from.kind
+        info = {"source": str(self.pose_from)}
+        if kind == "topic":
+            T, pose_frame = pose_item
+            if self.check_frames and frame and pose_frame and pose_frame != frame:
+                raise BagError(f"frame mismatch at stamp {t} ns: {self.image_topic} is in {frame!r} but "
+                               f"{self.pose_topic} is in {pose_frame!r}; the pose must be T_cam_panel in the image's "
+                               f"optical frame (pass check_frames=False to accept it anyway)")
+        elif kind == "tf":
+            from .tf import TfExtrapolationError
+
+            cam_frame = self.pose_from.camera_frame or frame
+            if not cam_frame:
+                raise BagError(f"{self.image_topic} has no header.frame_id: name the camera frame in "
+                               f"--pose-from tf:CAMERA_FRAME:{self.pose_from.panel_frame}")
+            if frame and self.pose_from.camera_frame and frame.lstrip("/") != self.pose_from.camera_frame:
+                self.warn(f"{self.image_topic} is in frame {frame!r} but poses are looked up for "
+                           f"{self.pose_from.camera_frame!r}: it must be the camera's optical frame (z forward)")
+            try:
+                T = self.tf.lookup(cam_frame, self.pose_from.panel_frame, t)
+            except TfExtrapolationError as exc:
+                return None, str(exc)
+            if T[2, 3] <= 0:
+                return None, (f"the panel origin is behind the camera in {cam_frame!r} (z = {T[2, 3]:.2f} m): is it "
+                              f"the optical frame (z forward, REP 103) and not e.g. camera_link (x forward)?")
+        else:
+            if raw is img:
+                mp = self.markers.estimate(img, cam)
+            else:       # detect on the recorded frame (sharper), corners mapped into the rectified image
+                mp = self.markers.estimate(img, cam, raw_image=raw, raw_to_image=calib.rectify_points)
+            if mp.T is None:
+                if mp.unexpected_ids and not mp.ids and not self.marker_poses:
+                    lay = self.markers.layout
+                    raise BagError(f"{self.image_topic} image #{index}: ArUco markers {mp.unexpected_ids} "
+                                   f"({lay.dictionary}) found but the marker layout {lay.source} declares ids "
+                                   f"{lay.ids}: declare your panel's markers (ids, size, pose) in the .markers.yaml "
+                                   f"next to its mesh and pass --model")
+                return None, f"markers: {mp.reason}"
+            if mp.unexpected_ids:
+                self.warn(f"ArUco ids {mp.unexpected_ids} seen in {self.image_topic} are not in the marker layout "
+                           f"{self.markers.layout.source}: ignored")
+            self.marker_poses += 1
+            T = mp.T
+            info = mp.as_dict()
+        if self.aligner is not None and kind != "markers":
+            T, info = self._refine(img, cam, T, info)
+        return Sample(t, img, cam, T.copy(), frame or cam.frame_id, index=index, pose_info=info), None
 
 
-def read_samples(path, image_topic: str = "/camera/image_raw", info_topic: str = "/camera/camera_info",
-                 pose_topic: str = "/panel/pose", max_dt: float = 0.05, info_max_dt: float | None = 1.0,
-                 lateness: float = 0.1, queue_size: int = 64, check_frames: bool = True) -> Iterator[Sample]:
-    """Time-synchronized (image, camera_info, pose) samples of a bag, read lazily.
+def read_samples(path, image_topic: str = "/camera/image_raw", info_topic: str | None = "/camera/camera_info",
+                 pose_topic: str | None = "/panel/pose", max_dt: float = 0.05, info_max_dt: float | None = 1.0,
+                 lateness: float = 0.1, queue_size: int = 64, check_frames: bool = True, *, calibration=None,
+                 pose_from=None, model=None, marker_layout=None, tf_extrapolation: float = 0.1,
+                 tf_max_gap: float = 1.0, refine_pose: str = "none") -> Iterator[Sample]:
+    """Time-synchronized samples (image, intrinsics, panel pose) of a bag, read lazily.
 
     Parameters
     ----------
@@ -710,11 +866,13 @@ def read_samples(path, image_topic: str = "/camera/image_raw", info_topic: str =
         Bag directory, ``metadata.yaml``, or bare ``.mcap`` / ``.db3`` file; MCAP files that were
         cut off are read up to the last complete message.
     image_topic : str
-        ``sensor_msgs/Image`` (rgb8, bgr8, rgba8, bgra8, mono8) or ``sensor_msgs/CompressedImage``.
-    info_topic : str
-        ``sensor_msgs/CameraInfo``.
-    pose_topic : str
-        ``geometry_msgs/PoseStamped``: the panel pose in the camera optical frame.
+        ``sensor_msgs/Image`` (rgb8, bgr8, rgba8, bgra8, mono8) or ``sensor_msgs/CompressedImage``
+        (JPEG, PNG).
+    info_topic : str or None
+        ``sensor_msgs/CameraInfo``; not read when ``calibration`` is given.
+    pose_topic : str or None
+        ``geometry_msgs/PoseStamped``: the panel pose in the camera optical frame (the default pose
+        source, ``topic:pose_topic``).
     max_dt : float
         Largest |pose stamp - image stamp| in seconds; images without such a pose are dropped.
     info_max_dt : float or None
@@ -727,54 +885,176 @@ def read_samples(path, image_topic: str = "/camera/image_raw", info_topic: str =
         Most images kept waiting for their partners.
     check_frames : bool
         Require camera_info and pose ``header.frame_id`` to equal the image's (when both are set).
+    calibration : CameraCalibration or path, optional
+        Intrinsics from a ROS ``camera_calibration`` YAML file instead of ``info_topic``.
+    pose_from : str or PoseFrom, optional
+        ``topic:/TOPIC``, ``tf:CAMERA_FRAME:PANEL_FRAME`` or ``markers`` (see
+        :mod:`uw_sil.bags.source`); default ``topic:pose_topic``.
+    model : str or Path, optional
+        Panel mesh for ``markers`` (its marker layout and the face rendered to refine the pose);
+        default the shipped panel.
+    marker_layout : MarkerLayout, optional
+        Overrides the layout next to ``model``.
+    tf_extrapolation, tf_max_gap : float
+        Seconds a tf lookup may lie outside an edge's recording, and the longest recording gap
+        interpolated across (see :class:`~uw_sil.bags.tf.TransformBuffer`).
+    refine_pose : {'none', 'ecc'}
+        ``'ecc'``: refine topic and tf poses by aligning the rendered panel face with each frame
+        (:class:`uw_sil.sim.align.FaceAligner`; converges from errors up to ~2-3 cm and ~1.5 deg,
+        corrections above 5 deg or 10 % of the range are refused and the recorded pose kept, as
+        ``Sample.pose_info['refinement']`` says). Marker poses are always refined this way.
 
     Returns
     -------
     iterator of Sample
         In image arrival order, with a ``.report`` (:class:`ReadReport`, final once exhausted:
-        truncation, losses, pairing counters). Exact stamp matches are preferred, then the nearest
-        message within the tolerance.
+        truncation, losses, pairing counters, frames skipped for lack of a pose and why). Frames
+        with distortion in their calibration are rectified (``K, D, R -> P``) and ``Sample.camera``
+        is ``P``'s pinhole. ``Sample.index`` is the frame's position in the image topic,
+        ``Sample.pose_info`` how its pose was found (for markers: ids, reprojection error).
 
     Raises
     ------
     FileNotFoundError, BagError
         At the call: not a bag, empty bag, missing topic (the message lists the bag's topics),
-        wrong message type. While iterating: unsupported image encoding, inconsistent image data,
-        image size different from camera_info, frame mismatch, invalid calibration or pose.
+        wrong message type, tf frame missing (lists the frames) or tf tree with a gap. While
+        iterating: undecodable or unsupported image, image size different from the calibration,
+        frame mismatch, invalid calibration or pose, markers found with ids the layout does not
+        declare (and none it declares); at the end, when no frame had a pose.
     """
-    topics = (image_topic, info_topic, pose_topic)
-    if len(set(topics)) != 3:
+    from .source import PoseFrom
+
+    if refine_pose not in ("none", "ecc"):
+        raise ValueError(f"refine_pose must be 'none' or 'ecc', got {refine_pose!r}")
+    pf = PoseFrom("topic", topic=pose_topic) if pose_from is None else PoseFrom.parse(pose_from)
+    if pf.kind == "topic":
+        pose_topic = pf.topic
+    if calibration is not None:
+        from .camera_yaml import CameraCalibration, load_camera_yaml
+
+        calibration = calibration if isinstance(calibration, CameraCalibration) else load_camera_yaml(calibration)
+        info_topic = None
+    elif not info_topic:
+        raise ValueError("no camera intrinsics: give info_topic or a calibration (camera_calibration YAML)")
+    topics = [image_topic] + ([info_topic] if info_topic else []) + ([pose_topic] if pf.kind == "topic" else [])
+    if len(set(topics)) != len(topics):
         raise ValueError(f"image, camera_info and pose topics must differ, got {topics}")
     layout = _layout(path)
     info = _open_layout(layout)
-    _check_topics(info, {image_topic: (IMAGE_TYPE, COMPRESSED_IMAGE_TYPE), info_topic: (CAMERA_INFO_TYPE,),
-                         pose_topic: (POSE_TYPE,)})
+    wanted = {image_topic: (IMAGE_TYPE, COMPRESSED_IMAGE_TYPE)}
+    if info_topic:
+        wanted[info_topic] = (CAMERA_INFO_TYPE,)
+    if pf.kind == "topic":
+        wanted[pose_topic] = (POSE_TYPE,)
+    _check_topics(info, wanted)
     if not info.topics[image_topic].count:
-        raise BagError(f"topic {image_topic!r} of bag {info.path} has no messages")
+        raise BagError(f"{info.path}: topic {image_topic!r} has no messages")
+    tf_buffer = markers = None
+    if pf.kind == "markers" and marker_layout is None:
+        from ..sim.markers import layout_for_model
+
+        marker_layout = layout_for_model(model)       # a missing or bad layout file: fail now
+    if pf.kind == "tf":
+        from .tf import load_tf
+
+        with _located(layout.root):
+            tf_buffer = load_tf(path, extrapolation_s=tf_extrapolation, max_gap_s=tf_max_gap)
+            if pf.camera_frame:
+                tf_buffer.chain(pf.camera_frame, pf.panel_frame)    # missing frame / gap: fail now
+            else:
+                tf_buffer.chain(pf.panel_frame, pf.panel_frame)
     rep = _new_report(layout)
     rep.requested = list(topics)
     rep.expected = info.report.expected
-    sync = StampSynchronizer(3, max_dt=[info_max_dt, max_dt], lateness=lateness, queue_size=queue_size)
-    rep.sync = sync.stats
-    builder = _SampleBuilder(topics, check_frames, rep)
+    rep.pose_source = str(pf)
+    rep.camera_source = calibration.source if calibration is not None else info_topic
+    streams = len(topics)
+    sync = StampSynchronizer(streams, max_dt=([info_max_dt] if info_topic else []) + ([max_dt] if pf.kind == "topic"
+                                                                                       else []),
+                             lateness=lateness, queue_size=queue_size) if streams > 1 else None
+    rep.sync = sync.stats if sync is not None else SyncStats.for_streams(1)
+    builder_args = (image_topic, info_topic, pf, calibration, check_frames, rep)
     types = _Types()
-    index = {image_topic: 0, info_topic: 1, pose_topic: 2}
+    index = {t: k for k, t in enumerate(topics)}
+    k_info = index.get(info_topic) if info_topic else None
+    k_pose = index.get(pose_topic) if pf.kind == "topic" else None
+
+    late_ns = seconds_to_ns(lateness)
+    newest = [None] * len(topics)
+    went_back: set = set()
 
     def gen():
-        for topic, msgtype, _, data in _raw_stream(layout, topics, rep, types):
-            msg = types.deserialize(data, msgtype)
-            t = _stamp_ns(msg.header.stamp)
-            k = index[topic]
-            item = (msgtype, msg) if k == 0 else builder.camera(msg, t) if k == 1 else builder.pose(msg, t)
-            for match in sync.add(k, t, item):
+        nonlocal markers
+        aligner = None
+        if pf.kind == "markers":
+            from ..sim.markers import MarkerPoseEstimator
+
+            markers = MarkerPoseEstimator(marker_layout, model=model)
+        elif refine_pose == "ecc":
+            from ..sim.align import FaceAligner
+
+            aligner = FaceAligner(model)
+        builder = _SampleBuilder(*builder_args, tf_buffer=tf_buffer, markers=markers, aligner=aligner)
+        n_img = 0
+
+        def emit(match_stamp, items):
+            s, why = builder.sample(items[0][0], match_stamp, items[0][1],
+                                    items[k_info] if k_info is not None else None,
+                                    items[k_pose] if k_pose is not None else None)
+            if s is None:
+                rep.skipped.append((items[0][0], match_stamp, why))
+                log.info("%s image #%d skipped: %s", image_topic, items[0][0], why)
+            else:
                 rep.samples += 1
-                yield builder.sample(match)
-        for match in sync.flush():
-            rep.samples += 1
-            yield builder.sample(match)
-        rep.finished = True
-        if sync.stats.dropped:
-            log.warning("%s: %d of %d images had no camera_info/pose within tolerance and were dropped",
-                        layout.root, sync.stats.dropped, sync.stats.received[0])
+            return s
+
+        try:
+            with _located(layout.root):
+                for topic, msgtype, _, data in _raw_stream(layout, topics, rep, types):
+                    msg = types.deserialize(data, msgtype)
+                    t = _stamp_ns(msg.header.stamp)
+                    k = index[topic]
+                    if newest[k] is not None and newest[k] - t > late_ns and topic not in went_back:
+                        went_back.add(topic)
+                        builder.warn(f"{topic}: header stamps go back in time by more than the out-of-order "
+                                     f"tolerance ({lateness:g} s; first at stamp {t} ns, "
+                                     f"{(newest[k] - t) / 1e9:.3f} s back): such messages may be paired with a "
+                                     f"neighbour's partners or dropped")
+                    newest[k] = t if newest[k] is None else max(newest[k], t)
+                    if k == 0:
+                        item = (n_img, (msgtype, msg))
+                        n_img += 1
+                    elif k == k_info:
+                        item = builder.camera(msg, t)
+                    else:
+                        item = builder.pose_msg(msg, t)
+                    if sync is None:
+                        rep.sync.received[0] += 1
+                        rep.sync.matched += 1
+                        s = emit(t, (item,))
+                        if s is not None:
+                            yield s
+                        continue
+                    for match in sync.add(k, t, item):
+                        s = emit(match.stamp_ns, match.items)
+                        if s is not None:
+                            yield s
+                if sync is not None:
+                    for match in sync.flush():
+                        s = emit(match.stamp_ns, match.items)
+                        if s is not None:
+                            yield s
+                rep.finished = True
+                if rep.samples == 0 and rep.skipped:
+                    raise BagError(f"no frame of {image_topic} has a panel pose from {pf}: {len(rep.skipped)} "
+                                   f"skipped, {rep.skip_summary()}")
+        finally:        # also when the reader stops early (closed stream): what was dropped so far
+            for closable in (markers, aligner):
+                if closable is not None:
+                    closable.close()
+            if sync is not None and sync.stats.dropped:
+                log.warning("%s: %d of %d images %shad no camera_info/pose within tolerance and were dropped",
+                            layout.root, sync.stats.dropped, sync.stats.received[0],
+                            "" if rep.finished else "read so far ")
 
     return _Stream(gen(), rep)

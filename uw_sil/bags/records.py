@@ -41,6 +41,10 @@ class Sample:
         4x4 float64 ``T_cam_panel``: the panel frame expressed in the camera optical frame.
     frame_id : str
         The camera optical frame (image ``header.frame_id``).
+    index : int
+        Position of the frame in its image topic (-1: unknown, e.g. a sample not read from a bag).
+    pose_info : dict or None
+        How the pose was obtained (``source``; for markers the ids and reprojection error).
     """
 
     stamp_ns: int
@@ -48,4 +52,6 @@ class Sample:
     camera: CameraModel
     pose: np.ndarray
     frame_id: str = "camera_optical_frame"
+    index: int = -1
+    pose_info: dict | None = None
 

@@ -29,6 +29,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from .._shared.checks import as_unit_rgb
+
 __all__ = ["DehazeResult", "dehaze_dcp"]
 
 _VARIANTS = {"dcp": (0, 1, 2), "udcp": (1, 2)}  # channels (of RGB) the dark channel is taken over
@@ -55,21 +57,7 @@ class DehazeResult:
 
 
 def _as_float_rgb(image) -> tuple[np.ndarray, np.dtype]:
-    arr = np.asarray(image)
-    if arr.ndim != 3 or arr.shape[2] != 3:
-        raise ValueError(f"image must be an RGB array of shape (H, W, 3), got shape {arr.shape}")
-    if arr.shape[0] < 1 or arr.shape[1] < 1:
-        raise ValueError(f"image must not be empty, got shape {arr.shape}")
-    if arr.dtype == np.uint8:
-        return arr.astype(np.float32) * np.float32(1.0 / 255.0), arr.dtype
-    if not np.issubdtype(arr.dtype, np.floating):
-        raise ValueError(f"image dtype must be uint8 (0-255) or floating point (0-1), got {arr.dtype}")
-    if not np.isfinite(arr).all():
-        raise ValueError("image contains NaN or infinite values")
-    lo, hi = float(arr.min()), float(arr.max())
-    if lo < -1e-6 or hi > 1.0 + 1e-6:
-        raise ValueError(f"float image values must lie in [0, 1], found [{lo:.4g}, {hi:.4g}]")
-    return np.clip(arr.astype(np.float32, copy=False), 0.0, 1.0), arr.dtype
+    return as_unit_rgb(image, np.float32), np.asarray(image).dtype
 
 
 def _dark_channel(img: np.ndarray, channels, patch: int) -> np.ndarray:

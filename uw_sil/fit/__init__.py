@@ -4,7 +4,7 @@ backward fit (:mod:`.backward`) and its report (:mod:`.report`).
 Import rules: may import :mod:`uw_sil.sim`, :mod:`uw_sil.metrics`, :mod:`uw_sil.bags`,
 :mod:`uw_sil._shared` and :mod:`uw_sil.viz`; never the ROS nodes.
 """
-from importlib import import_module
+from .._shared.lazy import lazy_getattr
 
 _EXPORTS = {
     "FitResult": "backward", "FrameSelector": "backward", "OptimResult": "optimize", "fit_bag": "backward",
@@ -12,8 +12,4 @@ _EXPORTS = {
 }
 __all__ = sorted(_EXPORTS)
 
-
-def __getattr__(name):
-    if name in _EXPORTS:
-        return getattr(import_module(f".{_EXPORTS[name]}", __name__), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__getattr__ = lazy_getattr(__name__, _EXPORTS)

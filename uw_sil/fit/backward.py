@@ -30,9 +30,15 @@ from .._shared.fileio import write_text_atomic
 from ..sim.params import ParamSpace, UnderwaterParams
 
 __all__ = ["FitFrame", "FrameSelection", "FrameSelector", "select_frames", "BackwardObjective", "FitResult", "fit_frames",
-           "fit_bag", "write_params_yaml", "read_params_yaml", "write_json_atomic", "DEFAULT_NODE_NAME"]
+           "fit_bag", "write_params_yaml", "read_params_yaml", "write_json_atomic", "DEFAULT_NODE_NAME", "FIT_TOL",
+           "FIT_PATIENCE"]
 
 DEFAULT_NODE_NAME = "/**"
+
+#: Stop on convergence of a fit (:func:`fit_frames`): stop once the best θ gained no more than ``FIT_TOL``
+#: over the last ``FIT_PATIENCE`` iterations. Chosen with bench/bench_convergence.py (see the README).
+FIT_TOL = 1e-5
+FIT_PATIENCE = 15
 
 
 @dataclass
@@ -44,6 +50,8 @@ class FitFrame:
     image: np.ndarray       # (H, W, 3) uint8 RGB, the real frame
     render: object          # uw_sil.sim.render.RenderResult
     coverage: float         # fraction of pixels on the panel
+    image_index: int = -1   # position in the bag's image topic (Sample.index)
+    pose_info: dict = None  # how the pose was found (Sample.pose_info: source, marker reprojection error...)
 
     @property
     def range_median(self) -> float:
@@ -62,9 +70,11 @@ class FrameSelector:
     """Online frame selection at dive start: offer frames one by one until ``k`` are taken.
 
     A frame is taken when the panel, rendered at the frame's recorded pose, covers at least
-    ``min_coverage`` of the image; otherwise it is skipped with a reason. Only every ``stride``-th
-    frame is considered (spreads the K frames over more ranges, which separates fog from
-    attenuation). Used offline by :func:`select_frames` and online by the ``backward_fit`` node.
+    ``min_coverage`` of the image; otherwise it is skipped with a reason (also when the panel is
+    behind the camera). Frames that show nothing -- all one colour, e.g. lights off or a saturated
+    sensor (every channel with a standard deviation below 1 grey level) -- are skipped too. Only
+    every ``stride``-th frame is considered (spreads the K frames over more ranges, which separates
+    fog from attenuation). Used offline by :func:`select_frames` and online by the ``backward_fit`` node.
 
     Parameters
     ----------
@@ -93,6 +103,7 @@ class FrameSelector:
         self.skipped: list = []
         self.scanned = 0
         self._size = None
+        self._unusable = 0      # frames skipped for their content, not for the panel's visibility
 
     @property
     def done(self) -> bool:
@@ -112,14 +123,23 @@ class FrameSelector:
         elif (h, w) != self._size:
             raise ValueError(f"frame {idx} is {w}x{h} but earlier frames are {self._size[1]}x{self._size[0]}: "
                              "fit frames of one camera stream only")
+        flat = _uniform_reason(sample.image)
+        if flat:
+            self.skipped.append((idx, flat))
+            self._unusable += 1
+            return False
         if self.renderer.camera != sample.camera:
             self.renderer.camera = sample.camera
         rr = self.renderer.render(sample.pose)
         cov = float(np.mean(rr.labels == 1))
         if cov < self.min_coverage:
-            self.skipped.append((idx, f"panel covers {100 * cov:.1f}% of the image (< {100 * self.min_coverage:.1f}%)"))
+            z = float(sample.pose[2, 3])
+            why = (f"the panel is behind the camera (its origin at z = {z:.2f} m in the optical frame)" if z <= 0
+                   else f"panel covers {100 * cov:.1f}% of the image (< {100 * self.min_coverage:.1f}%)")
+            self.skipped.append((idx, why))
             return False
-        self.frames.append(FitFrame(idx, int(sample.stamp_ns), np.ascontiguousarray(sample.image), rr, cov))
+        self.frames.append(FitFrame(idx, int(sample.stamp_ns), np.ascontiguousarray(sample.image), rr, cov,
+                                    int(getattr(sample, "index", -1)), getattr(sample, "pose_info", None)))
         return True
 
     def result(self) -> FrameSelection:
@@ -127,8 +147,22 @@ class FrameSelector:
         if not self.frames:
             detail = (f"; {len(self.skipped)} skipped, e.g. frame {self.skipped[0][0]}: {self.skipped[0][1]}"
                       if self.skipped else "")
-            raise ValueError(f"panel not visible in any of the first {self.scanned} frames{detail}")
+            what = "no usable frame among" if self._unusable else "panel not visible in any of"
+            raise ValueError(f"{what} the first {self.scanned} frames{detail}")
         return FrameSelection(list(self.frames), list(self.skipped), self.scanned)
+
+
+def _uniform_reason(image: np.ndarray) -> str:
+    """Why a frame cannot be fitted because it shows nothing (all one colour), or "" if it can."""
+    img = np.asarray(image)
+    lo, hi = img.min(axis=(0, 1)), img.max(axis=(0, 1))
+    if np.all(lo == hi):
+        return f"the frame is uniform (every pixel {', '.join(str(int(v)) for v in lo)}): nothing to fit"
+    if np.all(img.reshape(-1, img.shape[-1]).std(axis=0) < 1.0):
+        mean = img.reshape(-1, img.shape[-1]).mean(axis=0)
+        return (f"the frame is nearly uniform (mean {', '.join(f'{v:.1f}' for v in mean)}, standard deviation "
+                f"below 1 grey level): nothing to fit")
+    return ""
 
 
 def select_frames(samples: Iterable, renderer, k: int = 3, min_coverage: float = 0.02, max_scan: int = 200,
@@ -296,6 +330,10 @@ class FitResult:
     wall_time_s: float
     hist_pixels: str = "split"
     noise_sigma: list = None
+    read_report: object = None         # uw_sil.bags.ReadReport of the bag (fit_bag), else None
+    theta_x0: Optional[float] = None   # θ where the optimizer started (None: PSO's random swarm)
+    images_without_pose: list = field(default_factory=list)   # (image index, reason) from the bag reader
+    pose_source: str = ""
 
     @property
     def noise_level(self) -> float:
@@ -312,6 +350,7 @@ class FitResult:
             "lower": [float(v) for v in self.space.lower],
             "upper": [float(v) for v in self.space.upper],
             "theta_before": float(self.theta_start),
+            "theta_optimizer_start": None if self.theta_x0 is None else float(self.theta_x0),
             "theta_after": float(self.theta_best),
             "optimizer": o.method,
             "seed": o.seed,
@@ -320,6 +359,8 @@ class FitResult:
             "iterations": int(o.n_iters),
             "converged_iteration": o.converged_iter,
             "stop_reason": o.stop_reason,
+            "tol": float(o.tol),
+            "patience": int(o.patience),
             "history_best_theta": [float(v) for v in o.history_best_f],
             "wall_time_s": float(self.wall_time_s),
             "channels": self.channels,
@@ -327,8 +368,11 @@ class FitResult:
             "noise_sigma_per_frame": [[float(v) for v in s] for s in (self.noise_sigma or [])],
             "fog": self.fog,
             "frames": [{"index": f.index, "stamp_ns": f.stamp_ns, "coverage": f.coverage,
-                        "range_median_m": f.range_median} for f in self.frames],
+                        "range_median_m": f.range_median, "image_index": f.image_index,
+                        **({"pose": f.pose_info} if f.pose_info else {})} for f in self.frames],
             "skipped_frames": [{"index": i, "reason": r} for i, r in self.skipped],
+            "pose_source": self.pose_source,
+            "images_without_pose": [{"image_index": i, "reason": r} for i, r in self.images_without_pose],
         }
 
 
@@ -336,17 +380,23 @@ def fit_frames(frames: list, method: str = "pso", color_model: str = "rgb", chan
                fog: str = "exp2", hist_pixels: str = "split", sim_noise="estimate", lower=None, upper=None,
                seed: Optional[int] = 0,
                start: Optional[UnderwaterParams] = None, x0="linear", progress: bool = False,
-               callback: Optional[Callable] = None, skipped=(), **optim_options) -> FitResult:
+               callback: Optional[Callable] = None, skipped=(), tol: float = FIT_TOL, patience: int = FIT_PATIENCE,
+               **optim_options) -> FitResult:
     """Fit the 7 parameters to already selected frames.
 
-    ``start`` (e.g. the simulator's current parameters) gives θ before the fit; by default the centre of
-    the bounds. ``x0`` is where the optimizer starts:
+    ``start`` (e.g. the simulator's current parameters) gives θ before the fit (``theta_start``); by default
+    the centre of the bounds. ``x0`` is where the optimizer starts (θ there: ``theta_x0``):
 
     - ``'linear'`` (default): :func:`linear_start`, a least-squares estimate of Eq. 1 on the panel
       pixels, with CMA-ES' initial step reduced to 0.1 of each range (unless ``sigma0`` is given);
     - ``'water'``: background from the mean real water colour, the rest at the centre of the bounds;
     - ``None``: the centre of the bounds (the paper's PSO: a random swarm);
     - a vector in the space's coordinates.
+
+    The fit stops on convergence, when the best θ gained no more than ``tol`` over the last ``patience``
+    iterations (:func:`uw_sil.fit.optimize.optimize`; ``stop_reason`` ``"converged"``), or after ``max_iter``
+    iterations (default 100). ``patience=0`` turns that stop off; ``method="pso", x0=None, patience=0`` is
+    the paper's PSO exactly (a random swarm of 20, up to 100 iterations).
 
     For PSO a start is one particle of the otherwise random initial swarm. Measured on a 640x480
     synthetic trial (K = 3, 4.0/3.3/1.9 m), CMA-ES from the centre had θ 0.862 after 100 iterations
@@ -372,16 +422,20 @@ def fit_frames(frames: list, method: str = "pso", color_model: str = "rgb", chan
                 optim_options.setdefault("sigma0", 0.1)
         else:
             raise ValueError(f"x0 must be 'linear', 'water', None or a vector, got {x0!r}")
+    # θ where the search starts: x0, or the centre of the bounds (CMA-ES' first mean; PSO: a random swarm)
+    x_opt_start = np.asarray(x0, dtype=float) if x0 is not None else \
+        ((space.lower + space.upper) / 2 if method == "cmaes" else None)
+    theta_x0 = None if x_opt_start is None else float(obj(x_opt_start[None])[0])
     try:
         res = optimize(obj, space.lower, space.upper, method=method, seed=seed, progress=progress,
-                       callback=callback, names=space.names, x0=x0, **optim_options)
+                       callback=callback, names=space.names, x0=x0, tol=tol, patience=patience, **optim_options)
     finally:
         obj.close()
     params = UnderwaterParams.from_vector(np.clip(space.to_rgb(res.x_best), 0, None), model="rgb") \
         if space.model == "rgb" else UnderwaterParams.from_vector(res.x_best, model="hsv")
     return FitResult(params, np.asarray(res.x_best), float(res.f_best), theta_start, space, res, frames,
                      list(skipped), channels, fog, time.perf_counter() - t0, hist_pixels,
-                     [s.tolist() for s in obj.noise_sigma])
+                     [s.tolist() for s in obj.noise_sigma], theta_x0=theta_x0)
 
 
 def linear_start(frames: list, space: ParamSpace, fog: str = "exp2") -> np.ndarray:
@@ -460,15 +514,47 @@ def water_start(frames: list, space: ParamSpace) -> np.ndarray:
 
 
 def fit_bag(bag, k: int = 3, stride: int = 1, min_coverage: float = 0.02, max_scan: int = 200, model=None,
-            **fit_options) -> FitResult:
-    """Read a recording, select frames, render them and fit (see :func:`select_frames`, :func:`fit_frames`)."""
-    from ..bags import read_samples
+            source=None, **fit_options) -> FitResult:
+    """Read a recording, select frames, render them and fit (see :func:`select_frames`, :func:`fit_frames`).
+
+    ``source`` (:class:`uw_sil.bags.source.BagSource`) says which topics, calibration and pose source to
+    read; default the standard topics (``/camera/image_raw``, ``/camera/camera_info``, ``/panel/pose``).
+    Its ``model`` (the panel mesh) is used when ``model`` is not given.
+    """
+    from ..bags.source import BagSource
     from ..sim.render import Renderer
 
+    source = BagSource(model=model) if source is None else source
+    model = source.model if model is None else model
     with Renderer(model) as renderer:
-        sel = select_frames(read_samples(bag), renderer, k=k, min_coverage=min_coverage, max_scan=max_scan,
-                            stride=stride)
-    return fit_frames(sel.frames, skipped=sel.skipped, **fit_options)
+        stream = source.read(bag)
+        selector = FrameSelector(renderer, k=k, min_coverage=min_coverage, max_scan=max_scan, stride=stride)
+        try:
+            for s in stream:
+                selector.offer(s)
+                if selector.done:
+                    break
+        finally:
+            stream.close()      # the report then holds what was read (and found damaged) so far
+        if selector.scanned == 0:
+            raise ValueError(f"{stream.report.path}: {_no_frames_reason(stream.report)}")
+        sel = selector.result()
+    result = fit_frames(sel.frames, skipped=sel.skipped, **fit_options)
+    result.read_report = stream.report
+    result.images_without_pose = [(i, why) for i, _, why in stream.report.skipped]
+    result.pose_source = str(source.pose_from)
+    return result
+
+
+def _no_frames_reason(report) -> str:
+    """Why a bag with image messages gave no sample (damaged storage, or no partners within tolerance)."""
+    if report.errors:
+        return "no frame could be read: " + "; ".join(report.errors)
+    sync = report.sync
+    if sync is not None and sync.received[0]:
+        return (f"no frame could be read: none of the {sync.received[0]} images has a camera_info and a pose "
+                f"within the stamp tolerance")
+    return "no frame could be read: no complete image message in the bag"
 
 
 def write_json_atomic(path, data) -> Path:
@@ -495,7 +581,10 @@ def write_params_yaml(path, params: UnderwaterParams, node_name: str = DEFAULT_N
         ros_params["effects"] = ",".join(effects)
         ros_params.update(effect_params_to_flat(effects))
     body = {node_name: {"ros__parameters": ros_params}}
-    text = "".join(f"# {line}\n" for line in comment.splitlines()) + yaml.safe_dump(body, sort_keys=False)
+    # comment lines hold the bag's path: characters YAML does not allow (control characters) are escaped
+    lines = ("".join(c if c.isprintable() else c.encode("unicode_escape").decode() for c in line)
+             for line in comment.splitlines())
+    text = "".join(f"# {line}\n" for line in lines) + yaml.safe_dump(body, sort_keys=False)
     return write_text_atomic(path, text)
 
 
@@ -511,20 +600,44 @@ def read_params_yaml(path, node_name: Optional[str] = None) -> dict:
     -------
     dict
         ``params`` (UnderwaterParams), ``fog`` (str), ``noise_sigma`` (float or None), ``effects``
-        (``{name: {param: value}}``, composition order).
+        (``{name: {param: value}}``, composition order), ``node`` (the node entry read).
+
+    Raises
+    ------
+    FileNotFoundError
+        ``path`` does not exist.
+    ValueError
+        With a message starting with ``path``: not YAML (with line and column), not a ROS 2
+        parameters file, no entry for the node, a missing parameter, a value that is not a number or
+        outside its physical range, an unknown fog mode or effect, a negative noise level.
     """
     import yaml
 
     from ..sim.effects import EFFECTS, get_effect
     from ..sim.model import normalize_effects
+    from ..sim.optics import FOG_MODES
 
-    doc = yaml.safe_load(Path(path).read_text()) or {}
-    if not isinstance(doc, dict) or not doc:
-        raise ValueError(f"{path}: not a ROS 2 parameters file")
+    p = Path(path)
+    try:
+        text = p.read_text()
+    except FileNotFoundError:
+        raise FileNotFoundError(f"{p}: does not exist") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{p}: cannot read: {exc}") from None
+    try:
+        doc = yaml.safe_load(text) or {}
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark is not None else ""
+        problem = getattr(exc, "problem", None) or " ".join(str(exc).split())
+        raise ValueError(f"{p}: not a valid YAML file: {problem}{where}") from None
+    if not isinstance(doc, dict) or not any(isinstance(v, dict) and isinstance(v.get("ros__parameters"), dict)
+                                            for v in doc.values()):
+        raise ValueError(f"{p}: not a ROS 2 parameters file: expected <node>: {{ros__parameters: {{...}}}}")
     if node_name is None:
         node_name = next(iter(doc)) if len(doc) == 1 else DEFAULT_NODE_NAME
     if node_name not in doc or not isinstance(doc[node_name], dict) or "ros__parameters" not in doc[node_name]:
-        raise ValueError(f"{path}: no 'ros__parameters' for node {node_name!r} (nodes: {', '.join(map(str, doc))})")
+        raise ValueError(f"{p}: no 'ros__parameters' for node {node_name!r} (nodes: {', '.join(map(str, doc))})")
     flat = {}
 
     def walk(prefix, d):
@@ -536,17 +649,26 @@ def read_params_yaml(path, node_name: Optional[str] = None) -> dict:
                 flat[key] = v
 
     walk("", doc[node_name]["ros__parameters"])
-    params = UnderwaterParams.from_dict(flat)
-    effects = {}                    # as sim_camera reads its ``effects`` list: NAME (defaults) or NAME=mild|strong
-    for item in (s.strip() for s in str(flat.get("effects", "")).split(",")):
-        if item:
-            name, _, level = (t.strip() for t in item.partition("="))
-            effects[name] = get_effect(name).severity(level) if level else get_effect(name).defaults()
-    for key, v in flat.items():                     # then the values in the file
-        name, dot, param = key.partition(".")
-        if dot and name in EFFECTS:
-            effects.setdefault(name, EFFECTS[name].defaults())[param] = v
-    effects = normalize_effects(effects)
-    noise = flat.get("noise_sigma")
-    return {"params": params, "fog": str(flat.get("fog_mode", "exp2")),
-            "noise_sigma": None if noise is None else float(noise), "effects": effects}
+    try:
+        params = UnderwaterParams.from_dict(flat)
+        fog = str(flat.get("fog_mode", "exp2"))
+        if fog not in FOG_MODES:
+            raise ValueError(f"fog_mode must be one of {', '.join(FOG_MODES)}, got {fog!r}")
+        noise = flat.get("noise_sigma")
+        if noise is not None and (isinstance(noise, bool) or not isinstance(noise, (int, float))
+                                  or not np.isfinite(noise) or noise < 0):
+            raise ValueError(f"noise_sigma must be a number >= 0 (grey levels), got {noise!r}")
+        effects = {}                # as sim_camera reads its ``effects`` list: NAME (defaults) or NAME=mild|strong
+        for item in (s.strip() for s in str(flat.get("effects", "")).split(",")):
+            if item:
+                name, _, level = (t.strip() for t in item.partition("="))
+                effects[name] = get_effect(name).severity(level) if level else get_effect(name).defaults()
+        for key, v in flat.items():                     # then the values in the file
+            name, dot, param = key.partition(".")
+            if dot and name in EFFECTS:
+                effects.setdefault(name, EFFECTS[name].defaults())[param] = v
+        effects = normalize_effects(effects)
+    except ValueError as exc:
+        raise ValueError(f"{p}: {exc}") from None
+    return {"params": params, "fog": fog, "noise_sigma": None if noise is None else float(noise),
+            "effects": effects, "node": node_name}

@@ -33,6 +33,12 @@ Conventions
   (``cma`` itself would silently replace NaN by the population *median*).
 * ``converged_iter`` is :func:`convergence_iteration` of the history: the first iteration after
   which the best theta improved by no more than ``tol`` in total.
+* Stop on convergence (``patience > 0``): after iteration ``k >= patience`` the run stops when the
+  best value gained no more than ``tol`` over the last ``patience`` iterations,
+  ``history_best_f[k] - history_best_f[k - patience] <= tol`` (``stop_reason == "converged"``).
+  Off by default here (``patience=0``): ``tol`` is in the objective's units, so the default belongs
+  to the caller (the backward fit sets one measured on θ, see :mod:`uw_sil.fit.backward`). The same
+  rule for both methods; it replaces pyswarm's own ``patience`` option (no longer passed through).
 
 How pyswarm is driven
 ---------------------
@@ -50,10 +56,10 @@ for particle 1 of an iteration, all ``S`` positions of that iteration are alread
 they are evaluated in one batched call and returned particle by particle. Each position the core
 asks for is checked to be bit-identical to the batched one (a mismatch raises ``RuntimeError``),
 so the search is pyswarm's, step for step; the test-suite checks that it returns the same best
-point as ``pyswarm.pso`` with the same seed. Stopping early on ``target`` or on a callback
+point as ``pyswarm.pso`` with the same seed. Stopping early on ``target``, on convergence or on a callback
 request returns ``+inf`` (pyswarm's "infeasible") for the remaining particles, which never
 changes the swarm's bests, instead of raising through Fortran. pyswarm's own ``nit``/``nfev``
-are one iteration short when it stops early (minstep/minfunc/patience); counts reported here
+are one iteration short when it stops early (minstep/minfunc); counts reported here
 come from the recorded evaluations.
 
 References
@@ -72,6 +78,9 @@ from types import MappingProxyType
 from typing import Callable, Optional, Sequence
 
 import numpy as np
+
+from .cmaes import run_cmaes
+from .pso import run_pso
 
 __all__ = [
     "METHODS",
@@ -95,10 +104,9 @@ PSO_PAPER_SETTINGS = MappingProxyType(
 #: Default initial CMA-ES step size, as a fraction of each parameter's range.
 CMAES_DEFAULT_SIGMA0 = 0.25
 
-_PSO_OPTIONS = {"minstep": 1e-8, "minfunc": 1e-8, "patience": 0}
+_PSO_OPTIONS = {"minstep": 1e-8, "minfunc": 1e-8}
 _CMAES_OPTIONS = {"sigma0": CMAES_DEFAULT_SIGMA0, "cma_options": None}
 _CMA_RESERVED = ("bounds", "seed", "randn", "popsize")
-_PYSWARM_VERSION = "1.1.2"
 
 
 class StopOptimization(Exception):
@@ -161,14 +169,16 @@ class OptimResult:
     converged_iter : int
         :func:`convergence_iteration` of ``history_best_f`` with ``tol``.
     tol : float
-        Tolerance used for ``converged_iter``.
+        Tolerance used for ``converged_iter`` and for the stop on convergence.
+    patience : int
+        Window of the stop on convergence in iterations (0: no such stop).
     target : float or None
         Requested target value.
     evals_to_target : int or None
         Number of evaluations up to and including the first one with value ``>= target``.
     stop_reason : str
-        ``"max_iter"``, ``"target"``, ``"callback"``, ``"minfunc"`` / ``"minstep"`` /
-        ``"patience"`` (pyswarm), or ``"cma:<criteria>"`` (cma's own termination).
+        ``"max_iter"``, ``"target"``, ``"callback"``, ``"converged"`` (see ``patience``),
+        ``"minfunc"`` / ``"minstep"`` (pyswarm), or ``"cma:<criteria>"`` (cma's own termination).
     wall_time_s : float
         Wall-clock duration of the run.
     seed : int
@@ -194,6 +204,7 @@ class OptimResult:
     n_invalid: int
     converged_iter: int
     tol: float
+    patience: int
     target: Optional[float]
     evals_to_target: Optional[int]
     stop_reason: str
@@ -230,6 +241,7 @@ class OptimResult:
             "n_invalid": int(self.n_invalid),
             "converged_iter": int(self.converged_iter),
             "tol": float(self.tol),
+            "patience": int(self.patience),
             "target": _json_float(self.target),
             "evals_to_target": None if self.evals_to_target is None else int(self.evals_to_target),
             "stop_reason": self.stop_reason,
@@ -432,7 +444,6 @@ def _method_options(method: str, options: dict) -> dict:
     if method == "pso":
         out["minstep"] = _check_float("minstep", out["minstep"], 0.0)
         out["minfunc"] = _check_float("minfunc", out["minfunc"], 0.0)
-        out["patience"] = _check_int("patience", out["patience"], 0)
     else:
         out["sigma0"] = _check_float("sigma0", out["sigma0"], 0.0, strict=True)
         cma_opts = out["cma_options"]
@@ -458,8 +469,9 @@ def _method_options(method: str, options: dict) -> dict:
 class _Recorder:
     """Evaluates batches of normalized candidates, records them, and handles stop requests."""
 
-    def __init__(self, objective, lo, hi, target, callback, bar):
+    def __init__(self, objective, lo, hi, target, callback, bar, tol=0.0, patience=0):
         self.objective = objective
+        self.tol, self.patience = tol, patience
         self.lo, self.hi = lo, hi
         self.span = hi - lo
         self.d = lo.size
@@ -511,6 +523,10 @@ class _Recorder:
             if hit.size:
                 self.evals_to_target = n_before + int(hit[0]) + 1
                 self.stop_reason = "target"
+        k = self.iteration
+        if (self.patience and self.stop_reason is None and k >= self.patience
+                and self.history_f[k] - self.history_f[k - self.patience] <= self.tol):
+            self.stop_reason = "converged"      # -inf - -inf is NaN: never while nothing valid was seen
         if self.bar is not None:
             self.bar.set_postfix(best=f"{self.best_f:.5f}", evals=self.n_evals, refresh=False)
             self.bar.update(1)
@@ -526,133 +542,6 @@ class _Recorder:
     @property
     def stopped(self) -> bool:
         return self.stop_reason is not None
-
-
-# --------------------------------------------------------------------------------------------
-# Methods
-# --------------------------------------------------------------------------------------------
-
-
-def _run_pso(rec: _Recorder, seed, s, omega, phi_p, phi_g, max_iter, opts, u0):
-    """Drive pyswarm's Fortran core with batched evaluations (see module docstring)."""
-    import pyswarm
-    from pyswarm._pyswarm import pso as pyswarm_core
-
-    if pyswarm.__version__ != _PYSWARM_VERSION:
-        raise RuntimeError(
-            f"uw_sil.fit.optimize drives the core of pyswarm {_PYSWARM_VERSION}, found "
-            f"pyswarm {pyswarm.__version__}"
-        )
-    d = rec.d
-    lb, ub = np.zeros(d), np.ones(d)
-    # Exactly pyswarm.pso's set-up (1.1.2), on the normalized box.
-    rng = np.random.default_rng(seed)
-    vhigh = np.abs(ub - lb)
-    x = lb + rng.random((s, d)) * (ub - lb)
-    if u0 is not None:
-        x[: u0.shape[0]] = u0  # as pyswarm's ``init``: the first particles start at x0
-    x = np.asfortranarray(x, dtype=np.float64)
-    v = np.asfortranarray(rng.uniform(-vhigh, vhigh, size=(s, d)))
-    rnd_p = np.asfortranarray(rng.random((max_iter, s, d)))
-    rnd_g = np.asfortranarray(rng.random((max_iter, s, d)))
-
-    state = {"calls": 0, "batch": None, "f": None}
-
-    def particle_value(xtmp, ndim):
-        k = state["calls"]
-        state["calls"] = k + 1
-        if rec.stopped:
-            # pyswarm treats values >= 1e300 as infeasible: never a personal or global best
-            return math.inf
-        i = k % s
-        if i == 0:
-            # All S positions of this iteration are already in ``x`` (Fortran works in place).
-            batch = np.array(x, dtype=float, order="C")
-            state["batch"] = batch
-            state["f"] = rec.evaluate(batch)
-        if not np.array_equal(xtmp, state["batch"][i]):
-            raise RuntimeError(
-                "pyswarm asked for a position that differs from the batched one "
-                f"(call {k}, particle {i}); its core no longer works in place as expected"
-            )
-        fi = state["f"][i]
-        return -float(fi) if np.isfinite(fi) else math.inf
-
-    x_out, _, _, fg, _, _, niters, status = pyswarm_core(
-        particle_value, lb, ub, x, v, rnd_p, rnd_g,
-        float(omega), float(phi_p), float(phi_g),
-        float(opts["minstep"]), float(opts["minfunc"]), int(opts["patience"]), 0,
-        np.empty(0, dtype=np.int32),
-    )
-    if not np.shares_memory(x_out, x):
-        raise RuntimeError("pyswarm's core copied the position array; batched evaluation invalid")
-    reason = {0: "max_iter", 1: "minstep", 2: "minfunc", 3: "patience"}.get(int(status))
-    if reason is None:
-        raise RuntimeError(f"unknown pyswarm status {status}")
-    if not rec.stopped:
-        rec.stop_reason = reason
-        if np.isfinite(rec.best_f) and -fg != rec.best_f:
-            raise RuntimeError(
-                f"pyswarm's best {-fg} differs from the best recorded evaluation {rec.best_f}"
-            )
-    info = {
-        "pyswarm_version": pyswarm.__version__,
-        "pyswarm_nit": int(niters),
-        "pyswarm_nfev": int(s + niters * s),
-        "pyswarm_status": int(status),
-        "pyswarm_calls": int(state["calls"]),
-    }
-    return info
-
-
-def _run_cmaes(rec: _Recorder, seed, popsize, max_iter, opts, u0):
-    """CMA-ES by ``cma`` (ask/tell), one batched call per generation."""
-    import cma
-
-    d = rec.d
-    rng = np.random.default_rng(seed)
-    inopts = {
-        "bounds": [[0.0] * d, [1.0] * d],
-        # Private generator: cma then neither seeds nor draws from numpy's global RNG.
-        "randn": lambda *shape: rng.standard_normal(shape),
-        "seed": np.nan,
-        "verbose": -9,
-        "verb_disp": 0,
-        "verb_log": 0,
-        "signals_filename": "",
-    }
-    if popsize is not None:
-        inopts["popsize"] = popsize
-    inopts.update(opts["cma_options"])
-    mean0 = np.full(d, 0.5) if u0 is None else u0[0]
-    es = cma.CMAEvolutionStrategy(mean0, opts["sigma0"], inopts)
-    if u0 is not None:
-        # The mean itself is never sampled; inject it so that the first generation evaluates x0
-        # (a good start must not be lost: the result is never worse than x0).
-        es.inject([u0[0]], force=True)
-    while True:
-        sols = es.ask()
-        f = rec.evaluate(np.array(sols, dtype=float))
-        # cma minimizes; invalid -> worse than the worst finite value of the batch.
-        loss = -f
-        bad = ~np.isfinite(loss)
-        if bad.any():
-            good = loss[~bad]
-            worst = float(good.max()) if good.size else 0.0
-            spread = float(good.max() - good.min()) if good.size else 0.0
-            loss[bad] = worst + 1.0 + spread
-        es.tell(sols, loss.tolist())
-        if rec.stopped:
-            break
-        if rec.iteration >= max_iter:
-            rec.stop_reason = "max_iter"
-            break
-        stop = es.stop()
-        if stop:
-            rec.stop_reason = "cma:" + ",".join(sorted(str(k) for k in stop))
-            break
-    return {"cma_version": cma.__version__, "popsize": int(es.popsize),
-            "cma_iterations": int(es.countiter), "final_sigma": float(es.sigma)}
 
 
 # --------------------------------------------------------------------------------------------
@@ -672,6 +561,7 @@ def optimize(
     phi_p: Optional[float] = None,
     phi_g: Optional[float] = None,
     tol: float = 1e-4,
+    patience: int = 0,
     target: Optional[float] = None,
     progress: bool = False,
     callback: Optional[Callable[[int, np.ndarray, float], Optional[bool]]] = None,
@@ -702,11 +592,18 @@ def optimize(
         PSO inertia, cognitive and social coefficients (defaults 0.4, 0.3, 0.3). PSO only:
         passing them with ``method="cmaes"`` is an error.
     tol : float, optional
-        Tolerance on the objective for ``converged_iter`` (reported, does not stop the run).
+        Absolute tolerance on the objective, for ``converged_iter`` (reported) and for the stop on
+        convergence (with ``patience``).
+    patience : int, optional
+        Stop on convergence: stop after the first iteration ``k >= patience`` with
+        ``best(k) - best(k - patience) <= tol``, i.e. when the best value gained no more than
+        ``tol`` over the last ``patience`` iterations (``stop_reason "converged"``). 0 (default)
+        disables it: the run goes to ``max_iter`` unless another rule stops it.
     target : float, optional
         Stop after the first iteration in which a value ``>= target`` was seen.
     progress : bool, optional
-        Show a tqdm progress bar on stderr (iterations; best value and evaluations in the postfix).
+        Show progress on stderr (iterations; best value and evaluations): a tqdm bar on a terminal,
+        plain lines elsewhere (:func:`uw_sil._shared.progress.progress_bar`).
     callback : callable, optional
         ``callback(iteration, best_x, best_f)`` after every iteration (``best_x`` is a copy in
         original units, NaN while nothing valid was seen). Returning a true value or raising
@@ -721,8 +618,7 @@ def optimize(
         generation (injected), so the result is never worse than x0.
     **method_options
         PSO: ``minstep`` and ``minfunc`` (pyswarm's stopping thresholds, default 1e-8, on the
-        normalized box and on the objective), ``patience`` (stop after that many iterations
-        without improvement; default 0 = off). CMA-ES: ``sigma0`` (initial step size as a
+        normalized box and on the objective). CMA-ES: ``sigma0`` (initial step size as a
         fraction of each range, default 0.25), ``cma_options`` (dict passed to
         ``cma.CMAEvolutionStrategy``, e.g. ``{"tolfun": 0}``).
 
@@ -751,6 +647,7 @@ def optimize(
     names = _validate_names(names, d)
     max_iter = _check_int("max_iter", max_iter, 1)
     tol = _check_float("tol", tol, 0.0)
+    patience = _check_int("patience", patience, 0)
     if target is not None:
         target = _check_float("target", target)
     if seed is None:
@@ -788,11 +685,12 @@ def optimize(
                 raise ValueError(f"x0: {_label(i, names)} = {col.tolist()} outside [{lo[i]}, {hi[i]}]")
         u0 = np.clip((x0a - lo) / (hi - lo), 0.0, 1.0)
 
-    settings = {"max_iter": max_iter, "search_space": "normalized to [0, 1]^d"}
+    settings = {"max_iter": max_iter, "tol": tol, "patience": patience, "search_space": "normalized to [0, 1]^d"}
     if method == "pso":
         settings.update(swarm_size=s, omega=omega, phi_p=phi_p, phi_g=phi_g,
-                        minstep=opts["minstep"], minfunc=opts["minfunc"], patience=opts["patience"],
+                        minstep=opts["minstep"], minfunc=opts["minfunc"],
                         paper_settings=(s == PSO_PAPER_SETTINGS["swarm_size"]
+                                        and patience == 0
                                         and omega == PSO_PAPER_SETTINGS["omega"]
                                         and phi_p == PSO_PAPER_SETTINGS["phi_p"]
                                         and phi_g == PSO_PAPER_SETTINGS["phi_g"]
@@ -804,17 +702,16 @@ def optimize(
 
     bar = None
     if progress:
-        from tqdm import tqdm
+        from .._shared.progress import progress_bar
 
-        # On a terminal a live bar; in logs (CI, launch files) an update every 15 s instead of every iteration.
-        bar = tqdm(total=max_iter + 1, desc=method, unit="it", file=sys.stderr, leave=True,
-                   mininterval=0.1 if sys.stderr.isatty() else 15.0)
-    rec = _Recorder(objective, lo, hi, target, callback, bar)
+        # On a terminal a live bar; in logs (CI, launch files, pipes) a plain line every few seconds.
+        bar = progress_bar(max_iter + 1, method, unit="it", file=sys.stderr)
+    rec = _Recorder(objective, lo, hi, target, callback, bar, tol, patience)
     try:
         if method == "pso":
-            info = _run_pso(rec, seed, s, omega, phi_p, phi_g, max_iter, opts, u0)
+            info = run_pso(rec, seed, s, omega, phi_p, phi_g, max_iter, opts, u0)
         else:
-            info = _run_cmaes(rec, seed, s, max_iter, opts, u0)
+            info = run_cmaes(rec, seed, s, max_iter, opts, u0)
             settings["swarm_size"] = info["popsize"]
     finally:
         if bar is not None:
@@ -839,6 +736,7 @@ def optimize(
         n_invalid=int(np.sum(f_all == -np.inf)),
         converged_iter=convergence_iteration(rec.history_f, tol),
         tol=tol,
+        patience=patience,
         target=target,
         evals_to_target=rec.evals_to_target,
         stop_reason=rec.stop_reason,

@@ -3,7 +3,7 @@ and the paper's objective theta (:mod:`.theta`); no-reference underwater indices
 
 Import rules: imports nothing of uw_sil but :mod:`uw_sil._shared`.
 """
-from importlib import import_module
+from .._shared.lazy import lazy_getattr
 
 _EXPORTS = {
     "FSIMReference": "fsim", "HistogramReference": "histsim", "ThetaReference": "theta", "ThetaScores": "theta",
@@ -12,8 +12,4 @@ _EXPORTS = {
 }
 __all__ = sorted(_EXPORTS)
 
-
-def __getattr__(name):
-    if name in _EXPORTS:
-        return getattr(import_module(f".{_EXPORTS[name]}", __name__), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__getattr__ = lazy_getattr(__name__, _EXPORTS)

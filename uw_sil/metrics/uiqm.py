@@ -61,6 +61,8 @@ import math
 import cv2
 import numpy as np
 
+from .._shared.checks import as_unit_rgb
+
 __all__ = [
     "PLIP_GAMMA",
     "PLIP_K",
@@ -85,21 +87,7 @@ _LUMA = np.array([0.299, 0.587, 0.114])
 
 def _as_rgb(image) -> np.ndarray:
     """The image as float64 RGB on the [0, 1] scale; ValueError for anything else."""
-    arr = np.asarray(image)
-    if arr.ndim != 3 or arr.shape[2] != 3:
-        raise ValueError(f"image must be an RGB array of shape (H, W, 3), got shape {arr.shape}")
-    if arr.shape[0] < 1 or arr.shape[1] < 1:
-        raise ValueError(f"image must not be empty, got shape {arr.shape}")
-    if arr.dtype == np.uint8:
-        return arr.astype(np.float64) / 255.0
-    if not np.issubdtype(arr.dtype, np.floating):
-        raise ValueError(f"image dtype must be uint8 (0-255) or floating point (0-1), got {arr.dtype}")
-    if not np.isfinite(arr).all():
-        raise ValueError("image contains NaN or infinite values")
-    lo, hi = float(arr.min()), float(arr.max())
-    if lo < -1e-6 or hi > 1.0 + 1e-6:
-        raise ValueError(f"float image values must lie in [0, 1], found [{lo:.4g}, {hi:.4g}]")
-    return np.clip(arr.astype(np.float64), 0.0, 1.0)
+    return as_unit_rgb(image, np.float64)
 
 
 def _blocks(x: np.ndarray, block: int) -> np.ndarray:

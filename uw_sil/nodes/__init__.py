@@ -1,15 +1,24 @@
 """The ROS 2 room: thin rclpy adapters around the core library (parameters, topics, services, message
-conversion), the node graphs (:mod:`.graph`) that feed both the launch files and ``uw-sil launch``
-(:mod:`.launcher`).
+conversion), the node graphs (:mod:`.graph`) that feed both the launch files (:mod:`.launchgen`) and
+``uw-sil launch`` (:mod:`.launcher`).
 
-Import rules: the only room that imports rclpy and ROS message packages (inside the node modules;
-this ``__init__``, :mod:`.graph` and :mod:`.launcher` import no rclpy at module level). No algorithm
-lives here: nodes call :mod:`uw_sil.sim`, :mod:`uw_sil.fit`, :mod:`uw_sil.bags`.
+Import rules: the only room that imports rclpy and ROS message packages (inside the node modules and
+:mod:`.launchgen`; this ``__init__``, :mod:`.graph` and :mod:`.launcher` import no ROS at module level).
+No algorithm lives here: nodes call :mod:`uw_sil.sim`, :mod:`uw_sil.fit`, :mod:`uw_sil.bags`.
 """
 from __future__ import annotations
 
+import os
+import re
+import signal
 import sys
+import time
+from contextlib import contextmanager
+from pathlib import Path
 from typing import Callable, Optional
+
+#: Environment variable naming the Fast DDS XML profile; nodes set it to the package's profile when unset.
+FASTDDS_PROFILE_VAR = "FASTDDS_DEFAULT_PROFILES_FILE"
 
 
 def help_requested(args=None) -> bool:
@@ -19,29 +28,198 @@ def help_requested(args=None) -> bool:
     return "-h" in own or "--help" in own
 
 
+def use_fastdds_profile(environ=None) -> str:
+    """Point ``FASTDDS_DEFAULT_PROFILES_FILE`` at ``config/fastdds_shm.xml`` unless it is already set.
+
+    Fast DDS' default transports lose large images between processes (640x480 rgb8 at 30 Hz: 59 of 150
+    delivered); the profile (a 32 MiB shared-memory segment plus UDP on loopback) delivered all. Fast DDS
+    reads the variable when the first participant is created, so this must run before ``rclpy.init``.
+    Returns the profile in effect (the caller's own when it had set one).
+    """
+    env = os.environ if environ is None else environ
+    if not env.get(FASTDDS_PROFILE_VAR):
+        from .graph import share_file
+
+        env[FASTDDS_PROFILE_VAR] = str(share_file("config", "fastdds_shm.xml"))
+    return env[FASTDDS_PROFILE_VAR]
+
+
+_SEGMENT_LOCK = re.compile(r"^fastdds_[0-9a-f]{16}_el$")
+
+
+def clean_stale_shm_segments(shm_dir="/dev/shm", min_age_s: float = 2.0) -> tuple:
+    """Remove Fast DDS shared-memory segments whose owner process is gone; returns (segments, bytes).
+
+    Each Fast DDS segment ``fastdds_<16 hex>`` has a lock file ``<segment>_el`` that its owner holds
+    locked (``flock``) while it lives. A process killed with SIGKILL leaves both behind (35 MB each with
+    this package's profile; they pile up in /dev/shm, which is RAM). A lock file nobody holds marks a
+    dead owner; files younger than ``min_age_s`` are left alone (their owner may still be setting them
+    up). This is the rule of Fast DDS' own ``fastdds shm clean`` for segments; port files (52 kB each)
+    are reused by Fast DDS and left alone.
+    """
+    import fcntl
+
+    shm = Path(shm_dir)
+    try:
+        names = os.listdir(shm)
+    except OSError:
+        return 0, 0
+    removed, freed, now = 0, 0, time.time()
+    for name in names:
+        if not _SEGMENT_LOCK.match(name):
+            continue
+        lock, segment = shm / name, shm / name[:-3]
+        try:
+            if now - lock.stat().st_mtime < min_age_s:
+                continue
+            with open(lock, "ab") as f:
+                try:
+                    fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                except OSError:
+                    continue                     # held: the owner is alive
+                size = segment.stat().st_size if segment.exists() else 0
+                segment.unlink(missing_ok=True)
+                lock.unlink(missing_ok=True)
+        except OSError:                          # gone meanwhile, or another user's file
+            continue
+        removed, freed = removed + 1, freed + size
+    return removed, freed
+
+
+def declare_string_array(node, name: str, descriptor) -> list:
+    """Declare a string-array parameter that has a value even when nobody gives one (then ``[]``).
+
+    rclpy types an empty default list as a byte array, and a parameter declared by type alone stays
+    unset: ``ros2 param get`` says "Parameter not set" and ``ros2 param dump`` of the node comes back
+    empty. So: declare by type, give it an empty string array if nothing overrode it, then apply the
+    descriptor (which may make it read-only). Returns the value.
+    """
+    from rcl_interfaces.msg import ParameterDescriptor
+    from rclpy.exceptions import ParameterUninitializedException
+    from rclpy.parameter import Parameter
+
+    node.declare_parameter(name, Parameter.Type.STRING_ARRAY,
+                           ParameterDescriptor(description=descriptor.description))
+    try:
+        node.get_parameter(name)
+    except ParameterUninitializedException:
+        node.set_parameters([Parameter(name, Parameter.Type.STRING_ARRAY, [])])
+    descriptor.type = Parameter.Type.STRING_ARRAY.value
+    node.set_descriptor(name, descriptor)
+    return list(node.get_parameter(name).value)
+
+
+@contextmanager
+def executor_for(node):
+    """A SingleThreadedExecutor serving ``node``, shut down on leaving (also on Ctrl-C).
+
+    An executor left to the garbage collector after Ctrl-C interrupted its wait (a suspended generator
+    holding rcl handles, in a reference cycle) crashed the process when collected later (segmentation
+    fault in ``gc.collect`` inside pyrender's context deletion, 1 in 10 shutdowns of backward_fit);
+    shutting it down here releases those handles while everything is still alive.
+    """
+    from rclpy.executors import SingleThreadedExecutor
+
+    executor = SingleThreadedExecutor(context=node.context)
+    executor.add_node(node)
+    try:
+        yield executor
+    finally:
+        executor.shutdown(timeout_sec=1.0)
+
+
+def _ignore_signals():
+    """From here on SIGINT/SIGTERM are ignored: the node is cleaning up and about to exit.
+
+    A terminal's Ctrl-C reaches the node and ``ros2 launch`` forwards another; a second signal must not
+    interrupt destroying the node or closing the renderer (KeyboardInterrupt traces, exit code -2), nor
+    kill the interpreter while it finalizes (Python then restores the default action, except for
+    ignored signals). ``rclpy.try_shutdown`` re-installs the handlers it found at init, so this is
+    called again after it."""
+    for s in (signal.SIGINT, signal.SIGTERM):
+        try:
+            signal.signal(s, signal.SIG_IGN)
+        except ValueError:   # not the main thread (a node run inside a test): leave signals alone
+            return
+
+
 def run_node(make_node: Callable, spin: Optional[Callable] = None, args=None, name: str = "",
-             user_errors: tuple = (), doc: str = "") -> int:
+             user_errors: tuple = (), doc: str = "", exit_process: bool = True) -> int:
     """The ``main()`` every node shares: init, build, spin, clean shutdown; returns the exit code.
 
     With ``-h``/``--help`` it prints ``doc`` (the node module's docstring: topics, parameters) and
     returns 0 without starting ROS.
 
+    Before ``rclpy.init``: the Fast DDS profile (:func:`use_fastdds_profile`), however the node is started
+    (``ros2 run``, ``ros2 launch``, ``uw-sil launch``, the console script), unless the caller set one; and
+    shared-memory segments left by killed processes are removed (:func:`clean_stale_shm_segments`).
+
     ``spin(node)`` returns an exit code (default: ``rclpy.spin``, code 0). Ctrl-C / SIGTERM are a clean
-    stop, also during start-up (then the context is already shut down under the constructor).
+    stop with exit code 0, also during start-up and also when repeated: once spinning has ended, further
+    SIGINT/SIGTERM are ignored (:func:`_ignore_signals`), and stay ignored when ``run_node`` returns (the
+    process is about to exit).
     Exceptions in ``user_errors`` (bad parameters such as a missing bag) are logged, exit code 1.
+
+    With ``exit_process`` (what the node executables do) the process ends right after the clean-up
+    (``os._exit`` once stdout/stderr are flushed): everything the node holds is released by then (node
+    destroyed, rclpy shut down, which removes its Fast DDS shared-memory segments; renderer closed; files
+    are written atomically), and the interpreter's own finalization took another 1.3-1.5 s per node
+    here, which made a graph need more than 5 s to stop. Otherwise the exit code is returned.
     """
     if help_requested(args):
         print(f"usage: ros2 run uw_sil {name or 'NODE'} [--ros-args -p NAME:=VALUE | --params-file FILE | "
               f"-r FROM:=TO ...]\n\n{doc.strip()}")
         return 0
+    try:   # SIGTERM stops a node like Ctrl-C, also while it starts; both are noted (see _interrupt)
+        for s in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(s, _interrupt)
+    except ValueError:                              # not the main thread: leave signals alone
+        pass
+    try:
+        code = _run_node(make_node, spin, args, name, user_errors)
+    except KeyboardInterrupt:                       # a signal in the few instructions around the clean-up
+        code = 0
+    finally:
+        _ignore_signals()
+    if exit_process:
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except (OSError, ValueError):
+                pass
+        os._exit(code)
+    return code
+
+
+#: Stop signals this process received (see :func:`_interrupt`).
+_stop_signals: list = []
+
+
+def _interrupt(signum, _frame):
+    """SIGINT/SIGTERM: note it, raise KeyboardInterrupt. Noted, because the KeyboardInterrupt does not always
+    arrive as one: raised while ctypes converts an argument (an OpenGL call of the renderer) it comes out
+    as ``ctypes.ArgumentError('argument 2: KeyboardInterrupt')``."""
+    _stop_signals.append(signum)
+    raise KeyboardInterrupt
+
+
+def _run_node(make_node, spin, args, name, user_errors) -> int:
+    profile = use_fastdds_profile()
+    stale = clean_stale_shm_segments()
     import rclpy
+    from rclpy.exceptions import ParameterException
     from rclpy.executors import ExternalShutdownException
     from rclpy.logging import get_logger
 
+    logger = get_logger(name or "uw_sil")
     rclpy.init(args=args)
     node = None
     code = 0
     try:
+        logger.debug(f"{FASTDDS_PROFILE_VAR}={profile}")
+        if stale[0]:
+            logger.info(f"removed {stale[0]} Fast DDS shared-memory segment(s) ({stale[1] / 2**20:.0f} MiB) "
+                        "left in /dev/shm by killed processes")
         node = make_node()
         if spin is None:
             rclpy.spin(node)
@@ -49,14 +227,22 @@ def run_node(make_node: Callable, spin: Optional[Callable] = None, args=None, na
             code = spin(node) or 0
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except user_errors as e:
-        get_logger(name or "uw_sil").error(str(e))
-        code = 1
+    except (*user_errors, ParameterException) as e:
+        _ignore_signals()
+        if not _stop_signals:
+            logger.error(str(e))
+            code = 1
     except Exception:
-        if rclpy.ok():
+        _ignore_signals()
+        if rclpy.ok() and not _stop_signals:   # an error, not a stop request that surfaced as one
             raise
     finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+        _ignore_signals()
+        try:
+            if node is not None:
+                node.destroy_node()
+            rclpy.try_shutdown()
+        except KeyboardInterrupt:   # between rclpy's handlers and ours: the clean-up is done enough
+            pass
+        _ignore_signals()           # rclpy.try_shutdown restored the handlers it found at init
     return code

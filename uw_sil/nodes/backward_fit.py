@@ -9,9 +9,18 @@ usable frames (:class:`uw_sil.fit.backward.FrameSelector`) are fitted in a worke
 
 Publishes ``~/status`` (std_msgs/String, transient local: ``collecting ...``, ``fitting ...``, then
 ``done: ...`` or ``failed: ...``) and ``~/theta`` (std_msgs/Float64, best θ per iteration). Service
-``~/start`` (std_srvs/Trigger) starts a new collection and fit. With ``idle_timeout`` > 0, the frames
-taken so far are fitted when no frame has arrived for that many seconds (a replayed bag has ended).
-With ``exit_when_done`` the node exits after the fit (status 0 when done, 1 when failed): an offline
+``~/start`` (std_srvs/Trigger) starts a new collection and fit (answered ``success: false`` with the
+reason when a fit is running or the parameters do not make a valid selection).
+
+Parameters (``ros2 param describe /backward_fit`` lists each with its range): the frame selection
+(``frames``, ``stride``, ``min_coverage``, ``max_scan``) and the fit (``optimizer``, ``color_model``,
+``channels``, ``fog_mode``, ``seed``, ``max_iter``, ``output_yaml``) are checked when set and used by the
+next collection / fit; ``idle_timeout`` and ``first_frame_timeout`` take effect at once; ``sim_node``,
+``max_dt``, ``auto_start``, ``model_path`` and ``exit_when_done`` are read-only (read at start).
+With ``idle_timeout`` > 0 the frames taken so far are fitted once no input message has arrived for
+that many seconds (a replayed bag has ended); with ``first_frame_timeout`` > 0 the collection fails
+("no frames arrived ...") when no input message at all arrived that long after it started. With
+``exit_when_done`` the node exits after the fit (status 0 when done, 1 when failed): an offline
 replay graph ends with it.
 """
 from __future__ import annotations
@@ -21,7 +30,7 @@ import sys
 import threading
 import time
 
-from rclpy.executors import SingleThreadedExecutor
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
 from rclpy.node import Node
 from rclpy.task import Future
 from rclpy.parameter import Parameter
@@ -34,11 +43,13 @@ from std_srvs.srv import Trigger
 
 from ..fit.backward import FrameSelector, fit_frames, write_params_yaml
 from ..bags import Sample
+from ..fit.optimize import METHODS
 from ..sim.camera import CameraModel
+from ..sim.optics import FOG_MODES
 from ..bags.imgmsg import image_to_rgb
 from ..bags.stamps import StampSynchronizer
 from ..sim.transforms import pose_to_matrix
-from . import run_node
+from . import executor_for, run_node
 
 
 def _defaults(fn) -> dict:
@@ -49,19 +60,78 @@ def _stamp_ns(header) -> int:
     return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
 
 
+#: Values the string parameters accept (the core's names).
+_CHOICES = {"optimizer": METHODS, "color_model": ("rgb", "hsv"), "fog_mode": FOG_MODES}
+
+
+def _float_range(lo: float, hi: float) -> dict:
+    return {"floating_point_range": [FloatingPointRange(from_value=float(lo), to_value=float(hi), step=0.0)]}
+
+
+def _int_range(lo: int, hi: int) -> dict:
+    return {"integer_range": [IntegerRange(from_value=int(lo), to_value=int(hi), step=1)]}
+
+
+def _parameters(sel: dict, fit: dict) -> list:
+    """(name, default, description, descriptor fields) of every parameter; defaults are the core's."""
+    live = "; used by the next collection (~/start)"
+    return [
+        ("frames", sel["k"], "K: usable frames to fit" + live, _int_range(1, 1000)),
+        ("stride", sel["stride"], "consider every n-th frame (spreads the K frames over more ranges)" + live,
+         _int_range(1, 1000)),
+        ("min_coverage", sel["min_coverage"], "smallest image fraction the panel must cover to take a frame"
+         + live, _float_range(0.0, 0.999)),
+        ("max_scan", sel["max_scan"], "frames looked at, at most" + live, _int_range(1, 1_000_000)),
+        ("optimizer", fit["method"], f"one of {', '.join(METHODS)}; used by the next fit", {}),
+        ("color_model", fit["color_model"], "parameterization searched: rgb or hsv; used by the next fit", {}),
+        ("channels", fit["channels"], "HSV channels of the histogram criterion (a subset of 'HSV', e.g. HS); "
+         "used by the next fit", {}),
+        ("fog_mode", fit["fog"], f"fog model, one of {', '.join(FOG_MODES)}; used by the next fit", {}),
+        ("seed", fit["seed"], "seed of the optimizer; used by the next fit", _int_range(0, 2**31 - 1)),
+        ("max_iter", 0, "optimizer iterations (0: the optimizer's default); used by the next fit",
+         _int_range(0, 100_000)),
+        ("output_yaml", "", "write the fitted parameters here as a ROS 2 parameters file (empty: do not); "
+         "used by the next fit", {}),
+        ("idle_timeout", 0.0, "fit the frames taken when no input message arrived for this long [s] "
+         "(0: wait for all frames)", _float_range(0.0, 3600.0)),
+        ("first_frame_timeout", 0.0, "fail the collection when no input message arrived this long after it "
+         "started [s] (0: wait)", _float_range(0.0, 3600.0)),
+        ("sim_node", "sim_camera", "node whose parameters the fit sets; read at start",
+         {"read_only": True}),
+        ("max_dt", 0.05, "largest stamp difference of a paired image and pose [s]; read at start",
+         {"read_only": True, **_float_range(0.0, 10.0)}),
+        ("auto_start", True, "start collecting at start (else on ~/start); read at start", {"read_only": True}),
+        ("model_path", "", "panel model for frame selection (empty: the procedural panel); read at start",
+         {"read_only": True}),
+        ("exit_when_done", False, "exit after the fit: status 0 when done, 1 when failed; read at start",
+         {"read_only": True}),
+    ]
+
+
+def _check(name: str, value) -> str:
+    """Why ``value`` is not acceptable for parameter ``name`` beyond its descriptor ('' when it is)."""
+    if name in _CHOICES and value not in _CHOICES[name]:
+        return f"{name}: {value!r} is not one of {', '.join(_CHOICES[name])}"
+    if name == "channels":
+        chans = str(value).upper()
+        if not chans or not set(chans) <= set("HSV") or len(set(chans)) != len(chans):
+            return f"channels: {value!r} is not a non-empty subset of 'HSV' without repeats (e.g. HSV, HS, V)"
+    if name == "min_coverage" and not 0.0 <= value < 1.0:
+        return f"min_coverage: {value} is not in [0, 1)"
+    return ""
+
+
 class BackwardFitNode(Node):
     def __init__(self, **kwargs):
         super().__init__("backward_fit", **kwargs)
         # Defaults are the core's (uw-sil fit uses the same), so the node and the CLI cannot drift apart.
-        sel, fit = _defaults(FrameSelector), _defaults(fit_frames)
-        for name, default in (("frames", sel["k"]), ("stride", sel["stride"]), ("min_coverage", sel["min_coverage"]),
-                              ("max_scan", sel["max_scan"]), ("optimizer", fit["method"]),
-                              ("color_model", fit["color_model"]), ("channels", fit["channels"]),
-                              ("fog_mode", fit["fog"]), ("seed", fit["seed"]),
-                              ("max_iter", 0),  # 0: the optimizer's own default
-                              ("sim_node", "sim_camera"), ("output_yaml", ""), ("max_dt", 0.05), ("auto_start", True),
-                              ("model_path", ""), ("exit_when_done", False), ("idle_timeout", 0.0)):
-            self.declare_parameter(name, default)
+        declared = _parameters(_defaults(FrameSelector), _defaults(fit_frames))
+        for name, default, description, fields in declared:
+            self.declare_parameter(name, default, ParameterDescriptor(description=description, **fields))
+        reasons = [r for r in (_check(n, self.get_parameter(n).value) for n, *_ in declared) if r]
+        if reasons:   # values given at start (parameter files, -p) pass the same checks as later changes
+            raise ValueError("backward_fit: " + "; ".join(reasons))
+        self.add_on_set_parameters_callback(self._on_set_parameters)
         latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL)
         self.pub_status = self.create_publisher(String, "~/status", latched)
         self.pub_theta = self.create_publisher(Float64, "~/theta", 10)
@@ -70,6 +140,7 @@ class BackwardFitNode(Node):
 
         self.renderer = Renderer(self.get_parameter("model_path").value or None)
         self._lock = threading.Lock()
+        self._stopping = threading.Event()   # set by destroy_node: the fit thread ends without touching the node
         self.selector = None
         self.fit_thread = None
         self.result = None
@@ -80,19 +151,29 @@ class BackwardFitNode(Node):
         # selection renders in the callback, and the first frames of a dive should not be dropped.
         sensor = QoSProfile(depth=30, reliability=qos_profile_sensor_data.reliability,
                             durability=qos_profile_sensor_data.durability)
-        self.create_subscription(Image, "camera/image_raw", lambda m: self._add(0, m), sensor)
-        self.create_subscription(CameraInfo, "camera/camera_info", lambda m: self._add(1, m), sensor)
-        self.create_subscription(PoseStamped, "panel/pose", lambda m: self._add(2, m), 10)
+        self.subs = [
+            self.create_subscription(Image, "camera/image_raw", lambda m: self._add(0, m), sensor),
+            self.create_subscription(CameraInfo, "camera/camera_info", lambda m: self._add(1, m), sensor),
+            self.create_subscription(PoseStamped, "panel/pose", lambda m: self._add(2, m), 10)]
         self.create_service(Trigger, "~/start", self._on_start)
         self._last_progress = None
-        self._last_sample = None   # monotonic time of the last frame offered to the selector
+        self._collect_start = None   # monotonic time the current collection started
+        self._last_input = None      # monotonic time of the last input message of the current collection
         self.create_timer(2.0, self._log_progress)
-        if self.get_parameter("idle_timeout").value > 0:
-            self.create_timer(0.5, self._check_idle)
+        self.create_timer(0.5, self._check_idle)
         if self.get_parameter("auto_start").value:
-            self._start()
+            started, reason = self._start()
+            if not started:
+                raise ValueError(f"backward_fit: {reason}")
         else:
             self._status("idle: call ~/start to fit")
+
+    def _on_set_parameters(self, params) -> SetParametersResult:
+        for p in params:
+            reason = _check(p.name, p.value)
+            if reason:
+                return SetParametersResult(successful=False, reason=reason)
+        return SetParametersResult(successful=True)
 
     def _status(self, text: str):
         self.get_logger().info(text)
@@ -104,16 +185,21 @@ class BackwardFitNode(Node):
         if not self.finished.done():
             self.finished.set_result(ok)
 
-    def _start(self) -> bool:
+    def _start(self) -> tuple:
+        """Start a new collection; (True, '') or (False, why not)."""
         with self._lock:
             if self.fit_thread is not None and self.fit_thread.is_alive():
-                return False
+                return False, "a fit is running"
             g = lambda n: self.get_parameter(n).value  # noqa: E731
-            self.selector = FrameSelector(self.renderer, k=g("frames"), min_coverage=g("min_coverage"),
-                                          max_scan=g("max_scan"), stride=g("stride"))
-            self._last_sample = None
+            try:
+                selector = FrameSelector(self.renderer, k=g("frames"), min_coverage=g("min_coverage"),
+                                         max_scan=g("max_scan"), stride=g("stride"))
+            except ValueError as e:   # the parameters are checked when set: this is a safety net
+                return False, str(e)
+            self.selector = selector
+            self._collect_start, self._last_input = time.monotonic(), None
         self._status(f"collecting {self.selector.k} frames with the panel in view")
-        return True
+        return True, ""
 
     def _log_progress(self):
         sel, st = self.selector, self.sync.stats
@@ -126,22 +212,38 @@ class BackwardFitNode(Node):
             self._last_progress = text
             self.get_logger().info(text)
 
+    def _inputs(self) -> str:
+        st = self.sync.stats
+        return (f"received {st.received[0]} images, {st.received[1]} camera_info, {st.received[2]} poses; "
+                f"{st.matched} matched")
+
     def _check_idle(self):
-        """With ``idle_timeout``: the input has stopped (end of a bag) before ``frames`` were taken."""
+        """The input has stopped (end of a bag) before ``frames`` were taken, or never started."""
         sel = self.selector
-        if sel is None or sel.done or self._last_sample is None:
+        if sel is None or sel.done:
             return
-        if time.monotonic() - self._last_sample >= self.get_parameter("idle_timeout").value:
-            self.get_logger().warning(f"no frame for {self.get_parameter('idle_timeout').value:g} s: fitting the "
-                                      f"{len(sel.frames)} of {sel.k} frames taken so far")
+        now = time.monotonic()
+        if self._last_input is None:
+            wait = self.get_parameter("first_frame_timeout").value
+            if wait > 0 and now - self._collect_start >= wait:
+                self.selector = None
+                topics = ", ".join(s.topic_name for s in self.subs)
+                self._finish(False, f"failed: no frames arrived: no message on {topics} in {wait:g} s")
+            return
+        wait = self.get_parameter("idle_timeout").value
+        if wait > 0 and now - self._last_input >= wait:
+            self.get_logger().warning(f"no input for {wait:g} s: fitting the {len(sel.frames)} of {sel.k} frames "
+                                      f"taken so far ({self._inputs()})")
             self._fit_selection(sel)
 
     def _on_start(self, _req, resp):
-        resp.success = self._start()
-        resp.message = "collecting frames" if resp.success else "a fit is running"
+        resp.success, reason = self._start()
+        resp.message = "collecting frames" if resp.success else reason
         return resp
 
     def _add(self, stream: int, msg):
+        if self.selector is not None:
+            self._last_input = time.monotonic()
         for match in self.sync.add(stream, _stamp_ns(msg.header), msg):
             self._offer(match)
 
@@ -158,23 +260,40 @@ class BackwardFitNode(Node):
         except ValueError as e:
             self.get_logger().error(f"frame skipped: {e}", throttle_duration_sec=5.0)
             return
-        finally:
-            self._last_sample = time.monotonic()
         if sel.done:
             self._fit_selection(sel)
 
     def _fit_selection(self, sel):
         self.selector = None
+        if sel.scanned == 0:
+            self._finish(False, f"failed: no frames arrived: {self._inputs()} (images are paired with a "
+                                "camera_info and a pose by stamp)")
+            return
         try:
             selection = sel.result()
         except ValueError as e:
-            self._finish(False, f"failed: {e}")
+            self._finish(False, f"failed: {e} ({self._inputs()})")
             return
-        self.fit_thread = threading.Thread(target=self._fit, args=(selection,), daemon=True)
+        # The options of this fit: parameters set while it runs apply to the next one.
+        options = {n: self.get_parameter(n).value for n in ("optimizer", "color_model", "channels", "fog_mode",
+                                                            "seed", "max_iter", "output_yaml", "sim_node")}
+        self.fit_thread = threading.Thread(target=self._fit, args=(selection, options), daemon=True)
         self.fit_thread.start()
 
-    def _fit(self, selection):
-        g = lambda n: self.get_parameter(n).value  # noqa: E731
+    def _fit(self, selection, options: dict):
+        """The fit thread: never dies with a traceback (a shutdown under it ends it quietly)."""
+        try:
+            self._fit_and_apply(selection, options)
+        except Exception as e:
+            if not self.context.ok():   # Ctrl-C: the node's handles went away under the fit; nothing to report
+                return
+            try:
+                self._finish(False, f"failed: {type(e).__name__}: {e}")
+            except Exception:           # the node itself is gone
+                pass
+
+    def _fit_and_apply(self, selection, options: dict):
+        g = options.__getitem__
         frames = ", ".join(f"#{f.index} ({f.range_median:.2f} m, {100 * f.coverage:.0f}% panel)"
                            for f in selection.frames)
         self._status(f"fitting {len(selection.frames)} frames with {g('optimizer')}: {frames} ...")
@@ -182,16 +301,16 @@ class BackwardFitNode(Node):
             self.get_logger().info(f"frame #{index} skipped: {reason}")
 
         def on_iteration(it, _x, best):
-            if not self.context.ok():
+            if self._stopping.is_set() or not self.context.ok():
                 return True  # shutting down: stop the optimizer
             self.pub_theta.publish(Float64(data=float(best)))
 
         try:
-            options = {"max_iter": g("max_iter")} if g("max_iter") > 0 else {}
+            optim = {"max_iter": g("max_iter")} if g("max_iter") > 0 else {}
             fit = fit_frames(selection.frames, method=g("optimizer"), color_model=g("color_model"),
                              channels=g("channels"), fog=g("fog_mode"), seed=g("seed"), callback=on_iteration,
-                             skipped=selection.skipped, **options)
-            if not self.context.ok():
+                             skipped=selection.skipped, **optim)
+            if self._stopping.is_set() or not self.context.ok():
                 return  # interrupted: the partial result is not written anywhere
             self.result = fit
             if g("output_yaml"):
@@ -204,9 +323,15 @@ class BackwardFitNode(Node):
         values.append(Parameter("fog_mode", value=g("fog_mode")))
         values.append(Parameter("noise_sigma", value=fit.noise_level))
         sim = g("sim_node")
-        if not self.sim_params.wait_for_services(timeout_sec=10.0):
-            self._finish(False, f"failed: {summary}, but the parameter services of {sim} are not available")
-            return
+        self.get_logger().info(f"{summary}: setting the parameters of {sim}")
+        deadline = time.monotonic() + 10.0
+        while not self.sim_params.services_are_ready():
+            if self._stopping.is_set() or not self.context.ok():
+                return
+            if time.monotonic() > deadline:
+                self._finish(False, f"failed: {summary}, but the parameter services of {sim} are not available")
+                return
+            self._stopping.wait(0.1)
 
         def on_response(f):
             try:
@@ -222,24 +347,34 @@ class BackwardFitNode(Node):
         self.sim_params.set_parameters_atomically(values).add_done_callback(on_response)
 
     def destroy_node(self):
-        self.renderer.close()
+        # The fit thread first: it uses the node's publishers and parameter client (stopping it ends the
+        # optimizer at its next iteration; a fit interrupted so is not written anywhere).
+        stopping, thread = getattr(self, "_stopping", None), getattr(self, "fit_thread", None)
+        if stopping is not None:
+            stopping.set()
+        if thread is not None and thread is not threading.current_thread():
+            thread.join(timeout=3.0)
+        # Also for a node whose constructor was interrupted (Ctrl-C while the renderer starts): rclpy
+        # destroys the nodes of a context at shutdown, built or not.
+        if getattr(self, "renderer", None) is not None:
+            self.renderer.close()
         super().destroy_node()
 
 
 def _spin(node) -> int:
     # Single-threaded on purpose: the OpenGL context of the renderer belongs to this thread.
     # The fit itself runs in a worker thread and needs no rendering.
-    executor = SingleThreadedExecutor()
-    executor.add_node(node)
-    if node.get_parameter("exit_when_done").value:
-        executor.spin_until_future_complete(node.finished)
-        return 0 if not node.finished.done() or node.finished.result() else 1
-    executor.spin()
+    with executor_for(node) as executor:
+        if node.get_parameter("exit_when_done").value:
+            executor.spin_until_future_complete(node.finished)
+            return 0 if not node.finished.done() or node.finished.result() else 1
+        executor.spin()
     return 0
 
 
 def main(args=None):
-    return run_node(BackwardFitNode, _spin, args=args, name="backward_fit", doc=__doc__)
+    return run_node(BackwardFitNode, _spin, args=args, name="backward_fit", user_errors=(ValueError,),
+                    doc=__doc__)
 
 
 if __name__ == "__main__":

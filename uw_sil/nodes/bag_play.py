@@ -30,17 +30,19 @@ import sys
 import time
 
 import rclpy
-from rcl_interfaces.msg import ParameterDescriptor
+from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor
 from rclpy.duration import Duration
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
-from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 from std_srvs.srv import Trigger
 
 from ..bags import iter_raw, open_bag
-from . import run_node
+from . import declare_string_array, executor_for, run_node
+
+
+def _float_range(lo: float, hi: float) -> list:
+    return [FloatingPointRange(from_value=lo, to_value=hi, step=0.0)]
 
 PLAYBACK_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE,
                           durability=DurabilityPolicy.VOLATILE)
@@ -68,12 +70,23 @@ def message_class(msgtype: str):
 class BagPlayNode(Node):
     def __init__(self, **kwargs):
         super().__init__("bag_play", **kwargs)
-        ro = ParameterDescriptor(read_only=True)
-        for name, default in (("bag", ""), ("rate", 1.0), ("loop", False), ("start_paused", False),
-                              ("delay", 0.0), ("wait_timeout", 30.0), ("clock_hz", 0.0)):
-            self.declare_parameter(name, default, ro)
-        for name in ("topics", "wait_for_topics", "wait_for_nodes"):
-            self.declare_parameter(name, Parameter.Type.STRING_ARRAY, ro)
+        for name, default, description, ranges in (
+                ("bag", "", "bag directory, metadata.yaml, or .mcap/.db3 file (required)", {}),
+                ("rate", 1.0, "playback speed factor", {"floating_point_range": _float_range(0.01, 100.0)}),
+                ("loop", False, "start over at the end of the bag", {}),
+                ("start_paused", False, "wait for ~/resume before playing", {}),
+                ("delay", 0.0, "extra wait before the first message [s]", {"floating_point_range": _float_range(0.0, 3600.0)}),
+                ("wait_timeout", 30.0, "how long to wait for wait_for_topics' subscribers [s]",
+                 {"floating_point_range": _float_range(0.0, 3600.0)}),
+                ("clock_hz", 0.0, "publish the bag time on /clock at this rate (0: off) [Hz]",
+                 {"floating_point_range": _float_range(0.0, 1000.0)})):
+            self.declare_parameter(name, default, ParameterDescriptor(
+                description=f"{description}; read at start", read_only=True, **ranges))
+        for name, description in (("topics", "topics to play (empty: all)"),
+                                  ("wait_for_topics", "start only once each of these topics has a subscriber"),
+                                  ("wait_for_nodes", "... a subscriber of each of these nodes (empty: any)")):
+            declare_string_array(self, name, ParameterDescriptor(description=f"{description}; read at start",
+                                                                 read_only=True))
         g = self._param
         self.bag, self.rate, self.loop = g("bag"), float(g("rate")), bool(g("loop"))
         if not self.bag:
@@ -114,8 +127,7 @@ class BagPlayNode(Node):
             self.create_timer(1.0 / g("clock_hz"), self._publish_clock)
 
     def _param(self, name: str):
-        # string arrays are declared without a default (an empty list would make them byte arrays)
-        return self.get_parameter_or(name, Parameter(name, value=[])).value
+        return self.get_parameter(name).value
 
     # ------------------------------------------------------------------ pause / resume
     def _set_paused(self, paused: bool) -> bool:
@@ -201,6 +213,8 @@ class BagPlayNode(Node):
                             return False
                         wait = 0.05 if self.paused else (m.log_time_ns - self.bag_time_now()) / self.rate / 1e9
                         executor.spin_once(timeout_sec=min(max(wait, 0.0), 0.05))
+                    if not self.context.ok():   # shut down by a callback of the last spin (the message was due)
+                        return False
                     self.publishers_[m.topic].publish(bytes(m.data))
                     self.played += 1
                     if time.monotonic() - last_log >= 2.0:
@@ -222,10 +236,9 @@ class BagPlayNode(Node):
 
 
 def _spin(node) -> int:
-    executor = SingleThreadedExecutor()
-    executor.add_node(node)
-    if not node.wait_for_readers(executor) or not node.play(executor):
-        return 1 if rclpy.ok() else 0   # interrupted (Ctrl-C) is not an error
+    with executor_for(node) as executor:
+        if not node.wait_for_readers(executor) or not node.play(executor):
+            return 1 if rclpy.ok() else 0   # interrupted (Ctrl-C) is not an error
     return 0
 
 

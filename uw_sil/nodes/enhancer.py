@@ -43,7 +43,6 @@ import time
 import numpy as np
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterEvent, ParameterType,
                                 SetParametersResult)
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter_client import AsyncParameterClient
 from rclpy.qos import (DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_parameter_events,
@@ -57,7 +56,7 @@ from ..bags.stamps import StampSynchronizer
 from ..enhance.sil import METHODS, Enhancer, model_from_parameters
 from ..sim.camera import CameraModel
 from ..sim.params import RGB_NAMES
-from . import run_node
+from . import executor_for, run_node
 
 MODEL_NAMES = tuple(RGB_NAMES) + ("fog_mode",)
 #: Images in a row without a sim partner after which the stamp offsets are logged (once per such run).
@@ -425,12 +424,11 @@ class EnhancerNode(Node):
 
 
 def _spin(node) -> int:
-    executor = SingleThreadedExecutor()
-    executor.add_node(node)
-    if node.get_parameter("idle_timeout").value > 0:
-        executor.spin_until_future_complete(node.finished)
-    else:
-        executor.spin()
+    with executor_for(node) as executor:      # shut down explicitly: a collected executor can segfault
+        if node.get_parameter("idle_timeout").value > 0:
+            executor.spin_until_future_complete(node.finished)
+        else:
+            executor.spin()
     return 0
 
 

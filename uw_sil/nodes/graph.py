@@ -1,18 +1,25 @@
 """The ROS 2 node graphs of uw_sil, described once for both ways of starting them.
 
-``launch/*.launch.py`` turns these descriptions into ``launch_ros`` ``Node`` actions (ROS 2 installs);
-``uw-sil launch`` turns them into processes (``python -m uw_sil.nodes.<module> --ros-args ...``) for
-pip installs, where ``launch``/``launch_ros`` do not exist. Nothing here imports ROS.
+A graph (:class:`Graph`, registered in :data:`GRAPHS`) is its arguments (:class:`GraphArg`: type,
+default, range, description) and a function from their values to a list of :class:`NodeSpec`.
+``launch/<graph>.launch.py`` turns it into launch arguments and ``launch_ros`` ``Node`` actions
+(:func:`uw_sil.nodes.launchgen.generate`, for ``ros2 launch``); ``uw-sil launch <graph>`` turns the same
+arguments into command-line options and the nodes into processes (:mod:`uw_sil.nodes.launcher`, for pip
+installs, where ``launch``/``launch_ros`` do not exist). Both check the arguments here, with messages
+naming the argument. Adding a graph: a builder returning NodeSpecs, a tuple of GraphArgs, an entry in
+:data:`GRAPHS`, and a three-line ``launch/<graph>.launch.py``. Nothing here imports ROS.
 """
 from __future__ import annotations
 
+import re
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional
+from typing import Callable, Iterable, Mapping, Optional
 
-__all__ = ["NodeSpec", "BACKWARD_INPUTS", "backward_graph", "forward_graph", "sil_graph", "ros_args", "command_line",
-           "share_file", "GRAPHS"]
+__all__ = ["NodeSpec", "GraphArg", "Graph", "BACKWARD_INPUTS", "BACKWARD_ARGS", "FORWARD_ARGS", "SIL_ARGS",
+           "backward_graph", "forward_graph", "sil_graph", "ros_args", "command_line", "share_file", "failure_reason",
+           "GRAPHS"]
 
 
 @dataclass
@@ -55,6 +62,10 @@ BACKWARD_INPUTS = ("/camera/image_raw", "/camera/camera_info", "/panel/pose")
 #: Seconds without a new frame after which ``backward_fit`` fits the frames it has (replayed bags).
 IDLE_TIMEOUT = 3.0
 
+#: With a bag: seconds after which ``backward_fit`` reports that no frames arrived at all. Longer than
+#: ``bag_play`` may wait for its readers (its ``wait_timeout``, 30 s), so a slow start is not a failure.
+FIRST_FRAME_TIMEOUT = 40.0
+
 
 def backward_graph(sim_params: Optional[str] = None, bag: Optional[str] = None, output_yaml: str = "",
                    frames: int = 3, optimizer: str = "pso", rate: float = 1.0, loop: bool = False,
@@ -74,8 +85,10 @@ def backward_graph(sim_params: Optional[str] = None, bag: Optional[str] = None, 
     fit = {"frames": int(frames), "optimizer": optimizer, "output_yaml": output_yaml, "sim_node": "sim_camera",
            "exit_when_done": exit_when_done}
     if bag:
-        # the bag may hold fewer usable frames than asked for: fit those once it has ended
+        # the bag may hold fewer usable frames than asked for: fit those once it has ended; and say so
+        # when none arrive at all
         fit["idle_timeout"] = IDLE_TIMEOUT
+        fit["first_frame_timeout"] = FIRST_FRAME_TIMEOUT
     if max_iter is not None:
         fit["max_iter"] = int(max_iter)
     if stride is not None:
@@ -159,7 +172,192 @@ def sil_graph(sim_params: Optional[str] = None, bag: Optional[str] = None, outpu
     return nodes
 
 
-GRAPHS = {"backward": backward_graph, "forward": forward_graph, "sil": sil_graph}
+# ------------------------------------------------------------------------------------------ arguments
+
+_TRUE, _FALSE = ("true", "1", "yes", "on"), ("false", "0", "no", "off")
+
+
+@dataclass(frozen=True)
+class GraphArg:
+    """One argument of a graph: ``name:=value`` for ``ros2 launch``, ``--name`` for ``uw-sil launch``.
+
+    ``kind`` is ``str``, ``int``, ``float`` or ``bool`` (true/false, also 1/0, yes/no, on/off); ``default``
+    None means "not given" (the builder's own default applies; an empty launch argument is the same);
+    ``minimum`` bounds numbers (``strict``: the value must exceed it); ``path`` marks a file or directory
+    (``uw-sil launch`` makes it absolute).
+    """
+
+    name: str
+    description: str
+    kind: type = str
+    default: object = None
+    choices: tuple = ()
+    minimum: Optional[float] = None
+    strict: bool = False
+    path: bool = False
+
+    @property
+    def expected(self) -> str:
+        """What a valid value looks like, in words."""
+        if self.choices:
+            return "one of " + ", ".join(self.choices)
+        if self.kind is bool:
+            return "true or false"
+        what = {int: "an integer", float: "a number", str: "a path" if self.path else "a string"}[self.kind]
+        if self.minimum is not None:
+            what += f" {'>' if self.strict else '>='} {self.minimum:g}"
+        return what
+
+    @property
+    def default_text(self) -> str:
+        """The default as launch-argument text ('' when there is none)."""
+        if self.default is None:
+            return ""
+        if self.kind is bool:
+            return "true" if self.default else "false"
+        return str(self.default)
+
+    def parse(self, text):
+        """The value of ``text`` (a string, or already a value of ``kind``); ValueError naming the argument.
+
+        An empty string gives the default."""
+        if not isinstance(text, str):
+            text = self.format(text)
+        text = text.strip()
+        if text == "":
+            return self.default
+        bad = ValueError(f"argument {self.name}:={text!r} is not valid: expected {self.expected}")
+        if self.choices and text not in self.choices:
+            raise bad
+        if self.kind is bool:
+            if text.lower() not in _TRUE + _FALSE:
+                raise bad
+            return text.lower() in _TRUE
+        try:
+            value = self.kind(text)
+        except ValueError:
+            raise bad from None
+        if self.kind is float and not abs(value) < float("inf"):   # nan, inf
+            raise bad
+        if self.minimum is not None and (value <= self.minimum if self.strict else value < self.minimum):
+            raise bad
+        return value
+
+    def format(self, value) -> str:
+        if isinstance(value, bool):
+            return "true" if value else "false"
+        return "" if value is None else str(value)
+
+    @property
+    def help(self) -> str:
+        """The description with what is expected and the default (launch argument / option help)."""
+        parts = [] if self.kind is str and not self.choices else [self.expected]
+        if self.default_text:
+            parts.append(f"default {self.default_text}")
+        return f"{self.description} ({'; '.join(parts)})" if parts else self.description
+
+
+@dataclass(frozen=True)
+class Graph:
+    """A node graph: its arguments and the function from their values to the nodes."""
+
+    name: str
+    description: str
+    arguments: tuple
+    build: Callable[..., list]           # keyword arguments named like ``arguments``; returns NodeSpecs
+
+    def argument(self, name: str) -> GraphArg:
+        for a in self.arguments:
+            if a.name == name:
+                return a
+        raise KeyError(f"graph {self.name} has no argument {name!r}; it has "
+                       + ", ".join(a.name for a in self.arguments))
+
+    def parse(self, texts: Mapping) -> dict:
+        """Every argument's value from ``texts`` (name -> text or value; missing: the default).
+
+        ValueError names each invalid argument and what it expects."""
+        unknown = set(texts) - {a.name for a in self.arguments}
+        if unknown:
+            raise ValueError(f"graph {self.name} has no argument(s) {', '.join(sorted(unknown))}; it has "
+                             + ", ".join(a.name for a in self.arguments))
+        values, errors = {}, []
+        for a in self.arguments:
+            try:
+                values[a.name] = a.parse(texts.get(a.name, ""))
+            except ValueError as e:
+                errors.append(str(e))
+        if errors:
+            raise ValueError("; ".join(errors))
+        return values
+
+    def nodes(self, texts: Mapping = None) -> list:
+        """The graph's NodeSpecs for the arguments ``texts`` (see :meth:`parse`); arguments without a value
+        are left to the builder's defaults."""
+        return self.build(**{k: v for k, v in self.parse(texts or {}).items() if v is not None})
+
+
+BACKWARD_ARGS = (
+    GraphArg("bag", "replay this field trial (rosbag2 directory, .mcap or .db3); the graph then ends after "
+             "the fit", path=True),
+    GraphArg("output_yaml", "write the fitted parameters here (a ROS 2 parameters file for sim_camera)", path=True),
+    GraphArg("sim_params", "sim_camera's start-up parameters file (default: config/sim_camera.yaml)", path=True),
+    GraphArg("frames", "K: usable frames to fit", int, 3, minimum=1),
+    GraphArg("stride", "consider every n-th frame (spreads the K frames over more ranges)", int, minimum=1),
+    GraphArg("optimizer", "optimizer of the backward fit", str, "pso", choices=("pso", "cmaes")),
+    GraphArg("max_iter", "optimizer iterations (default: the optimizer's own)", int, minimum=1),
+    GraphArg("rate", "bag replay rate (2: twice as fast as recorded)", float, 1.0, minimum=0, strict=True),
+    GraphArg("loop", "replay the bag in a loop", bool, False),
+    GraphArg("keep_running", "with a bag: keep the graph running after the fit, until Ctrl-C", bool, False),
+)
+
+_ENHANCER_ARGS = (
+    GraphArg("method", "the enhancer's method: sil (the fitted model, inverted), dcp or udcp", str, "sil",
+             choices=("sil", "dcp", "udcp")),
+    GraphArg("b_from_frame", "the enhancer re-estimates the background on every frame from its water", bool, False),
+)
+
+FORWARD_ARGS = (
+    GraphArg("bag", "replay this field trial (rosbag2 directory, .mcap or .db3); the graph then ends after its "
+             "last frame", path=True),
+    GraphArg("sim_params", "the fitted parameters file for sim_camera (`uw-sil fit --out fit.yaml`; default: "
+             "config/sim_camera.yaml)", path=True),
+    *_ENHANCER_ARGS,
+    *(a for a in BACKWARD_ARGS if a.name in ("rate", "loop")),
+    GraphArg("keep_running", "with a bag: keep the graph running after its last frame, until Ctrl-C", bool, False),
+)
+
+SIL_ARGS = BACKWARD_ARGS + _ENHANCER_ARGS
+
+#: The graphs by name: ``ros2 launch uw_sil <name>.launch.py`` and ``uw-sil launch <name>``.
+GRAPHS = {
+    "backward": Graph("backward", "sim_camera + backward_fit (+ bag_play replaying a field trial): fit the "
+                      "simulator to the first frames and re-parameterize it", BACKWARD_ARGS, backward_graph),
+    "forward": Graph("forward", "sim_camera + enhancer (+ bag_play): the real frames dehazed with the "
+                     "fitted model and the simulated depth", FORWARD_ARGS, forward_graph),
+    "sil": Graph("sil", "sim_camera + backward_fit + enhancer (+ bag_play): both halves; the fit "
+                 "re-parameterizes sim_camera and, through it, the enhancer", SIL_ARGS, sil_graph),
+}
+
+
+# ------------------------------------------------------------------------------------------ node output
+
+_LOG_PROBLEM = re.compile(r"\[(?:ERROR|FATAL)\] \[[\d.]+\] \[[^\]]*\]: (.+)")
+_EXCEPTION = re.compile(r"^(?:[A-Za-z_][\w.]*)(?:Error|Exception|Interrupt): .+")
+
+
+def failure_reason(lines: Iterable[str]) -> str:
+    """The last problem a node reported in its output: an rclpy ``[ERROR]``/``[FATAL]`` log message, or
+    the last line of a Python traceback ('' when there is none)."""
+    reason = ""
+    for line in lines:
+        line = line.strip()
+        m = _LOG_PROBLEM.search(line)
+        if m:
+            reason = m.group(1)
+        elif _EXCEPTION.match(line):
+            reason = line
+    return reason
 
 
 def _param_value(v) -> str:

@@ -19,8 +19,11 @@ Behaviour
   Without a bag (live camera) or with ``--keep-running`` everything runs until Ctrl-C, as with
   ``ros2 launch``.
 * A node that exits with an error (non-zero status, or a signal the launcher did not send) stops
-  the whole graph and the launcher exits with status 1. A node ending normally (``bag_play`` at the
+  the whole graph and the launcher exits with status 1, naming the node and its reason (the last
+  ``[ERROR]``/``[FATAL]`` line or exception it printed). A node ending normally (``bag_play`` at the
   end of the bag) ends only itself.
+* The options of ``uw-sil launch GRAPH`` are the graph's arguments (:class:`uw_sil.nodes.graph.GraphArg`),
+  the same as the launch file's, checked the same way.
 * Exit status: 0 when the graph ended normally or was stopped cleanly by Ctrl-C/SIGTERM, 1 when a
   node failed or had to be killed.
 * Children get ``PR_SET_PDEATHSIG`` (Linux): if the launcher itself is killed, they receive SIGTERM
@@ -54,6 +57,7 @@ class NodeProcess:
     buffer: bytes = b""
     returncode: Optional[int] = None
     signalled: bool = False   # the launcher sent it a signal: a signal exit is then not a failure
+    reason: str = ""          # the last problem the node reported in its output
 
     @property
     def failed(self) -> bool:
@@ -147,6 +151,7 @@ def _supervise(procs, sel, stop_requested, out, width, stop_timeout) -> int:
             lines, _, np_.buffer = data.rpartition(b"\n")
             if lines:
                 _emit(out, np_.spec.name, lines, width)
+                np_.reason = _graph.failure_reason([np_.reason, *lines.decode(errors="replace").splitlines()])
         for np_ in procs:
             if np_.returncode is None and np_.popen.poll() is not None:
                 np_.returncode = np_.popen.returncode
@@ -156,7 +161,7 @@ def _supervise(procs, sel, stop_requested, out, width, stop_timeout) -> int:
                 out.write(f"[launch] {np_.spec.name} {how}{' (FAILED)' if np_.failed else ''}\n")
                 if stopping_since is None:
                     if np_.failed:
-                        reason = f"{np_.spec.name} failed"
+                        reason = f"{np_.spec.name} failed" + (f" ({np_.reason})" if np_.reason else "")
                     elif np_.spec.required:
                         reason = f"required node {np_.spec.name} ended"
         if stopping_since is None and stop_requested:
@@ -166,10 +171,10 @@ def _supervise(procs, sel, stop_requested, out, width, stop_timeout) -> int:
             break
         now = time.monotonic()
         if stopping_since is None and reason is not None:
+            signals_at_stop = len(stop_requested)   # before writing: a Ctrl-C during the write is a second one
             out.write(f"[launch] {reason}: stopping {', '.join(p.spec.name for p in running)}\n")
             _signal_all(running, signal.SIGINT)
             stopping_since = now
-            signals_at_stop = len(stop_requested)
         elif stopping_since is not None and escalated < 2 and (
                 now - stopping_since > stop_timeout * (escalated + 1)
                 or len(stop_requested) > signals_at_stop + escalated):  # at once on another Ctrl-C
@@ -180,7 +185,7 @@ def _supervise(procs, sel, stop_requested, out, width, stop_timeout) -> int:
             _signal_all(running, sig)
             escalated += 1
         out.flush()
-    failed = [p.spec.name for p in procs if p.failed]
+    failed = [p.spec.name + (f" ({p.reason})" if p.reason else "") for p in procs if p.failed]
     out.write(f"[launch] done: {'FAILED: ' + ', '.join(failed) if failed else 'all nodes ended cleanly'}\n")
     out.flush()
     return 1 if failed else 0
@@ -197,6 +202,7 @@ def _drain(sel, np_, out, width):
     np_.buffer = b""
     if rest:
         _emit(out, np_.spec.name, rest, width)
+        np_.reason = _graph.failure_reason([np_.reason, *rest.decode(errors="replace").splitlines()])
 
 
 def _signal_all(procs, sig):
@@ -212,17 +218,18 @@ def _signal_all(procs, sig):
 
 
 def cmd_launch(args) -> int:
-    build = _graph.GRAPHS[args.graph]
-    absolute = lambda p: str(Path(p).resolve()) if p else p  # noqa: E731  (nodes log absolute paths)
-    options = dict(sim_params=absolute(args.sim_params), bag=absolute(args.bag),
-                   output_yaml=absolute(args.output_yaml) or "",
-                   frames=args.frames, optimizer=args.optimizer, rate=args.rate, loop=args.loop,
-                   max_iter=args.max_iter, stride=args.stride, keep_running=args.keep_running,
-                   method=args.method, b_from_frame=args.b_from_frame)
-    import inspect
-
-    accepted = inspect.signature(build).parameters     # each graph takes the options it has
-    specs = build(**{k: v for k, v in options.items() if k in accepted})
+    graph = _graph.GRAPHS[args.graph]
+    texts = {}
+    for a in graph.arguments:
+        value = getattr(args, a.name, None)
+        if value is not None and a.path and value != "":
+            value = str(Path(value).resolve())          # nodes log absolute paths
+        texts[a.name] = value if value is not None else ""
+    try:
+        specs = graph.nodes(texts)
+    except ValueError as e:
+        print(f"uw-sil launch {graph.name}: {e}", file=sys.stderr)
+        return 2
     return launch(specs)
 
 
@@ -244,28 +251,36 @@ def _positive(text: str) -> float:
     return v
 
 
+def _arg_type(arg: _graph.GraphArg):
+    """argparse type: the graph argument's own check (its message names the argument)."""
+    import argparse
+
+    def parse(text: str):
+        try:
+            return arg.parse(text)
+        except ValueError as e:
+            raise argparse.ArgumentTypeError(str(e)) from None
+    parse.__name__ = arg.name
+    return parse
+
+
 def add_commands(subparsers) -> None:
     """Register ``launch`` and ``play`` on the ``uw-sil`` argument parser."""
     la = subparsers.add_parser("launch", help="start a ROS 2 node graph (what `ros2 launch` does)",
                                description="Start the nodes of a uw_sil graph as processes, as `ros2 launch` would "
-                                           "(launch is not on PyPI). Ctrl-C stops them all.")
-    la.add_argument("graph", choices=sorted(_graph.GRAPHS))
-    la.add_argument("--bag", help="replay this field trial into the graph (then the graph ends after the fit)")
-    la.add_argument("--output-yaml", help="write the fitted parameters here (ROS 2 parameters file)")
-    la.add_argument("--frames", type=int, default=3, help="K: frames to fit (default 3)")
-    la.add_argument("--stride", type=int, help="consider every n-th frame (spreads the K frames over more ranges)")
-    la.add_argument("--optimizer", choices=["pso", "cmaes"], default="pso")
-    la.add_argument("--max-iter", type=int, help="optimizer iterations (default: the node's)")
-    la.add_argument("--rate", type=_positive, default=1.0, help="bag replay rate")
-    la.add_argument("--loop", action="store_true", help="replay the bag in a loop")
-    la.add_argument("--sim-params", help="sim_camera parameters YAML (default config/sim_camera.yaml)")
-    la.add_argument("--keep-running", action="store_true",
-                    help="with --bag: keep the graph running after the fit, until Ctrl-C")
-    la.add_argument("--method", choices=["sil", "dcp", "udcp"], default="sil",
-                    help="forward/sil graphs: the enhancer's method")
-    la.add_argument("--b-from-frame", action="store_true",
-                    help="forward/sil graphs: re-estimate the background on every frame from its water")
-    la.set_defaults(func=cmd_launch)
+                                           "(launch is not on PyPI). Ctrl-C stops them all. The options are the "
+                                           "graph's launch arguments.")
+    graphs = la.add_subparsers(dest="graph", metavar="GRAPH", required=True)
+    for graph in _graph.GRAPHS.values():
+        g = graphs.add_parser(graph.name, help=graph.description, description=graph.description)
+        for a in graph.arguments:
+            option = "--" + a.name.replace("_", "-")
+            if a.kind is bool and a.default is False:
+                g.add_argument(option, dest=a.name, action="store_true", help=a.description)
+            else:
+                g.add_argument(option, dest=a.name, type=_arg_type(a), help=a.help,
+                               metavar=a.name.upper() if not a.choices else "{" + ",".join(a.choices) + "}")
+        g.set_defaults(func=cmd_launch, graph=graph.name)
 
     pl = subparsers.add_parser("play", help="replay a bag with its recorded timing (what `ros2 bag play` does)")
     pl.add_argument("bag")

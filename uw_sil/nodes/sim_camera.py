@@ -23,7 +23,7 @@ from __future__ import annotations
 import sys
 
 import numpy as np
-from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor, SetParametersResult
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
 from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data
 from geometry_msgs.msg import PoseStamped
@@ -33,19 +33,59 @@ from ..sim.camera import CameraModel
 from ..sim.effects import get_effect
 from ..sim.model import flat_to_effect_params
 from ..bags.imgmsg import depth_to_image_fields, rgb_to_image_fields
+from ..sim.optics import FOG_MODES
 from ..sim.params import RGB_NAMES, UNITS, UnderwaterParams
 from ..sim.simcam import SimCamera
 from ..sim.transforms import pose_to_matrix
 from . import run_node
 
 _RANGES = {"a": (0.0, 5.0), "b": (0.0, 1.0), "rho": (0.0, 5.0)}
+#: Largest image side ``width``/``height`` accept, and the camera noise range [grey levels].
+MAX_SIDE = 8192
+NOISE_RANGE = (0.0, 50.0)
+
+
+def _float_range(lo: float, hi: float) -> list:
+    return [FloatingPointRange(from_value=float(lo), to_value=float(hi), step=0.0)]
+
+
+def _int_range(lo: int, hi: int) -> list:
+    return [IntegerRange(from_value=int(lo), to_value=int(hi), step=1)]
 
 
 def _descriptor(name: str) -> ParameterDescriptor:
-    lo, hi = _RANGES["rho" if name == "rho_f" else name[0]]
-    return ParameterDescriptor(
-        description=f"underwater model: {name} [{UNITS[name] or '0..1'}]",
-        floating_point_range=[FloatingPointRange(from_value=lo, to_value=hi, step=0.0)])
+    """A fresh descriptor per parameter: rclpy writes the parameter's name and type into it."""
+    if name in RGB_NAMES:
+        lo, hi = _RANGES["rho" if name == "rho_f" else name[0]]
+        what = {"a": "attenuation", "b": "background (veiling light)", "r": "fog density"}[name[0]]
+        return ParameterDescriptor(description=f"underwater model: {what} {name} [{UNITS[name] or '0..1'}]",
+                                   floating_point_range=_float_range(lo, hi))
+    return {
+        "fog_mode": lambda: ParameterDescriptor(
+            description=f"fog model, one of {', '.join(FOG_MODES)} (exp2: Gazebo's, f(z) = exp(-(rho_f z)^2))",
+            additional_constraints=f"one of {', '.join(FOG_MODES)}"),
+        "noise_sigma": lambda: ParameterDescriptor(
+            description="camera noise, standard deviation in grey levels (0 = noise-free)",
+            floating_point_range=_float_range(*NOISE_RANGE)),
+        "model_path": lambda: ParameterDescriptor(
+            description="panel model (.glb/.obj/...; empty: the procedural panel); read at start",
+            read_only=True),
+        "width": lambda: ParameterDescriptor(
+            description="image width [px] until a camera_info arrives; read at start", read_only=True,
+            integer_range=_int_range(8, MAX_SIDE)),
+        "height": lambda: ParameterDescriptor(
+            description="image height [px] until a camera_info arrives; read at start", read_only=True,
+            integer_range=_int_range(8, MAX_SIDE)),
+        "hfov_deg": lambda: ParameterDescriptor(
+            description="horizontal field of view [deg] until a camera_info arrives; read at start",
+            read_only=True, floating_point_range=_float_range(1.0, 179.0)),
+        "effects": lambda: ParameterDescriptor(
+            description="effects added to the model: NAME[=mild|strong],... (uw_sil.sim.effects); read at start",
+            read_only=True),
+        "queue_size": lambda: ParameterDescriptor(
+            description="poses queued while a frame renders (1: the newest replaces older ones); read at start",
+            read_only=True, integer_range=_int_range(1, 1000)),
+    }[name]()
 
 
 class SimCameraNode(Node):
@@ -54,25 +94,23 @@ class SimCameraNode(Node):
         defaults = UnderwaterParams().as_dict()
         for n in RGB_NAMES:
             self.declare_parameter(n, defaults[n], _descriptor(n))
-        self.declare_parameter("fog_mode", "exp2", ParameterDescriptor(description="exp2 | exp | none"))
-        self.declare_parameter("noise_sigma", 0.0, ParameterDescriptor(
-            description="camera noise, standard deviation in grey levels (0 = noise-free)",
-            floating_point_range=[FloatingPointRange(from_value=0.0, to_value=50.0, step=0.0)]))
-        ro = ParameterDescriptor(read_only=True)
-        self.declare_parameter("model_path", "", ro)
-        self.declare_parameter("width", 640, ro)
-        self.declare_parameter("height", 480, ro)
-        self.declare_parameter("hfov_deg", 70.0, ro)
-        self.declare_parameter("queue_size", 1, ro)
-        self.declare_parameter("effects", "", ParameterDescriptor(
-            read_only=True, description="effects added to the model: NAME[=mild|strong],... (uw_sil.sim.effects)"))
+        for n, default in (("fog_mode", "exp2"), ("noise_sigma", 0.0), ("model_path", ""), ("width", 640),
+                           ("height", 480), ("hfov_deg", 70.0), ("queue_size", 1), ("effects", "")):
+            self.declare_parameter(n, default, _descriptor(n))
         self._effect_names = self._declare_effects(self.get_parameter("effects").value)
         g = self.get_parameter
+        # Start-up values (parameter files, -p) pass the same checks as later changes.
+        reason = self._check({n: g(n).value for n in (*RGB_NAMES, "fog_mode", "noise_sigma", *self._effect_keys)})
+        if reason:
+            raise ValueError(f"sim_camera: {reason}")
         camera = CameraModel.from_fov(g("width").value, g("height").value, g("hfov_deg").value)
         self.sim = SimCamera(self._params_from(dict()), camera=camera, model=g("model_path").value or None,
                              fog=g("fog_mode").value, noise_sigma=g("noise_sigma").value,
                              effects=self._effects_from(dict()))
+        # Check a whole batch first, apply it only once every entry has passed (and rclpy has stored it):
+        # a batch rejected by its last entry changes nothing.
         self.add_on_set_parameters_callback(self._on_set_parameters)
+        self.add_post_set_parameters_callback(self._apply_parameters)
 
         self.pub_image = self.create_publisher(Image, "sim/image_raw", qos_profile_sensor_data)
         self.pub_clean = self.create_publisher(Image, "sim/image_clean", qos_profile_sensor_data)
@@ -82,8 +120,10 @@ class SimCameraNode(Node):
         self.create_subscription(CameraInfo, "camera/camera_info", self._on_camera_info, qos_profile_sensor_data)
         # Reliable; keep-last ``queue_size`` (1: when poses come faster than frames render, the newest is
         # rendered and the stale ones are dropped, which keeps the latency at about one render).
-        self.create_subscription(PoseStamped, "panel/pose", self._on_pose, g("queue_size").value)
+        pose_sub = self.create_subscription(PoseStamped, "panel/pose", self._on_pose, g("queue_size").value)
         self.frames = 0
+        self.get_logger().info(f"ready: {camera.width}x{camera.height} until a camera_info arrives, fog "
+                               f"{self.sim.fog}; rendering each pose on {pose_sub.topic_name}")
 
     def _declare_effects(self, spec: str) -> list:
         names = []
@@ -108,24 +148,46 @@ class SimCameraNode(Node):
                 flat[key] = float(changes.get(key, self.get_parameter(key).value))
         return flat_to_effect_params(flat)
 
+    @property
+    def _effect_keys(self) -> list:
+        return [f"{name}.{p}" for name in self._effect_names for p in get_effect(name).param_names]
+
     def _params_from(self, changes: dict) -> UnderwaterParams:
         d = {n: float(changes.get(n, self.get_parameter(n).value)) for n in RGB_NAMES}
         return UnderwaterParams.from_dict(d)
 
-    def _on_set_parameters(self, params) -> SetParametersResult:
-        changes = {p.name: p.value for p in params}
+    def _check(self, changes: dict) -> str:
+        """Why ``changes`` (name -> value, on top of the current values) cannot be applied; '' if they can.
+
+        Changes nothing. Ranges and types are also enforced by rclpy from the descriptors, before this."""
         try:
-            new = self._params_from(changes)
-            effects = self._effects_from(changes)
-            fog = changes.get("fog_mode", self.sim.fog)
-            self.sim.fog = fog
-            if "noise_sigma" in changes:
-                self.sim.noise_sigma = changes["noise_sigma"]
+            self._params_from(changes)
+            self._effects_from(changes)
         except (ValueError, TypeError) as e:
-            return SetParametersResult(successful=False, reason=str(e))
-        self.sim.params = new
-        self.sim.effects = effects
-        return SetParametersResult(successful=True)
+            return str(e)
+        fog = changes.get("fog_mode")
+        if fog is not None and fog not in FOG_MODES:
+            return f"fog_mode: unknown fog mode {fog!r}; expected one of {', '.join(FOG_MODES)}"
+        sigma = changes.get("noise_sigma")
+        if sigma is not None and not (np.isfinite(sigma) and NOISE_RANGE[0] <= sigma <= NOISE_RANGE[1]):
+            return f"noise_sigma must be finite and in [{NOISE_RANGE[0]:g}, {NOISE_RANGE[1]:g}] grey levels, got {sigma}"
+        return ""
+
+    def _on_set_parameters(self, params) -> SetParametersResult:
+        reason = self._check({p.name: p.value for p in params})
+        return SetParametersResult(successful=not reason, reason=reason)
+
+    def _apply_parameters(self, params) -> None:
+        """After rclpy stored an accepted batch: the simulator takes the new values (all checked)."""
+        names = {p.name for p in params}
+        if names & set(RGB_NAMES):
+            self.sim.params = self._params_from(dict())
+        if "fog_mode" in names:
+            self.sim.fog = self.get_parameter("fog_mode").value
+        if "noise_sigma" in names:
+            self.sim.noise_sigma = self.get_parameter("noise_sigma").value
+        if names & set(self._effect_keys):
+            self.sim.effects = self._effects_from(dict())
 
     def _on_camera_info(self, msg: CameraInfo):
         try:
@@ -142,23 +204,27 @@ class SimCameraNode(Node):
             return
         frame = self.sim.render(T)
         header = msg.header
-        for pub, fields in ((self.pub_image, rgb_to_image_fields(frame.image_uint8())),
-                            (self.pub_clean, rgb_to_image_fields(
+        # Images nobody subscribes to are not converted (a few ms each at 640x480).
+        for pub, fields in ((self.pub_image, lambda: rgb_to_image_fields(frame.image_uint8())),
+                            (self.pub_clean, lambda: rgb_to_image_fields(
                                 np.clip(np.rint(frame.render.rgb * 255), 0, 255).astype(np.uint8))),
-                            (self.pub_depth, depth_to_image_fields(frame.render.depth)),
-                            (self.pub_mask, rgb_to_image_fields(frame.render.labels, "mono8"))):
-            out = Image(header=header, **fields)
-            pub.publish(out)
+                            (self.pub_depth, lambda: depth_to_image_fields(frame.render.depth)),
+                            (self.pub_mask, lambda: rgb_to_image_fields(frame.render.labels, "mono8"))):
+            if pub.get_subscription_count() > 0:
+                pub.publish(Image(header=header, **fields()))
         self.pub_info.publish(CameraInfo(header=header, **self.sim.camera.camera_info_fields()))
         self.frames += 1
 
     def destroy_node(self):
-        self.sim.close()
+        # Also for a node whose constructor was interrupted (Ctrl-C while the renderer starts): rclpy
+        # destroys the nodes of a context at shutdown, built or not.
+        if getattr(self, "sim", None) is not None:
+            self.sim.close()
         super().destroy_node()
 
 
 def main(args=None):
-    return run_node(SimCameraNode, args=args, name="sim_camera", doc=__doc__)
+    return run_node(SimCameraNode, args=args, name="sim_camera", user_errors=(ValueError,), doc=__doc__)
 
 
 if __name__ == "__main__":

@@ -1,12 +1,13 @@
-"""The simulated camera: pinhole camera and poses, the panel scene, the headless renderer, the
-underwater image model with its parameters, camera noise, the effects the base model leaves out
+"""The simulated camera: pinhole camera and poses, the panel scene (and its fiducial markers, with the
+panel pose from them: :mod:`.markers`, refined by face alignment: :mod:`.align`), the headless renderer,
+the underwater image model with its parameters, camera noise, the effects the base model leaves out
 (:mod:`.effects`) with the extended model (:class:`UnderwaterModel`), and :class:`SimCamera` that puts
 them together.
 
 Import rules: imports nothing of uw_sil but :mod:`uw_sil._shared` (no metrics, fit, bags, ROS).
 Heavy modules (pyrender, trimesh) load only when their names are first used.
 """
-from importlib import import_module
+from .._shared.lazy import lazy_getattr
 
 _EXPORTS = {
     "CameraModel": "camera", "FOG_MODES": "optics", "NoiseField": "noise", "ParamSpace": "params",
@@ -14,11 +15,9 @@ _EXPORTS = {
     "SimFrame": "simcam", "UnderwaterParams": "params", "degrade": "optics", "estimate_noise_sigma": "noise",
     "facing_pose": "scene", "look_at": "transforms", "matrix_to_pose": "transforms", "pose_to_matrix": "transforms",
     "UnderwaterModel": "model", "Geometry": "model", "parse_effects": "effects", "EFFECTS": "effects",
+    "MarkerLayout": "markers", "MarkerPoseEstimator": "markers", "load_marker_layout": "markers",
+    "FaceAligner": "align",
 }
 __all__ = sorted(_EXPORTS)
 
-
-def __getattr__(name):
-    if name in _EXPORTS:
-        return getattr(import_module(f".{_EXPORTS[name]}", __name__), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__getattr__ = lazy_getattr(__name__, _EXPORTS)

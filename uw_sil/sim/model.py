@@ -1,6 +1,6 @@
 """The underwater model with optional effects: one object that degrades clean renders and restores images.
 
-Base model (as :mod:`uw_sil.optics`), per channel c, ``r`` range, ``z`` planar depth::
+Base model (as :mod:`uw_sil.sim.optics`), per channel c, ``r`` range, ``z`` planar depth::
 
     I_c = b_c + T_c (i_c - b_c),   T_c = exp(-a_c r) f(z),   f(z) = exp(-(rho_F z)^2)   ('exp2' fog)
 
@@ -16,7 +16,7 @@ Effects (:mod:`uw_sil.sim.effects`) extend it. Composition order, with ``i`` the
                                                                                   sensor_noise)
 
 Without effects ``T_D = T_B = T`` and no veil: ``D + B = b + T (i - b)``, computed in exactly the
-arithmetic of :func:`uw_sil.optics.degrade` (the results are bit-identical).
+arithmetic of :func:`uw_sil.sim.optics.degrade` (the results are bit-identical).
 
 :meth:`UnderwaterModel.restore` runs the model backwards on object pixels: invertible sensor effects
 are undone (camera response, vignetting), then ``i' = b + (I - B - b T_D) / max(T_D, t0)`` (which is
@@ -546,7 +546,7 @@ class PreparedModel:
             T = self._scratch
         for c in range(3):
             t = T[c]
-            np.multiply(prep.r, a[c], out=t)        # same arithmetic as uw_sil.optics.PreparedRender
+            np.multiply(prep.r, a[c], out=t)        # same arithmetic as uw_sil.sim.optics.PreparedRender
             if fz is not None:
                 t += fz
             np.negative(t, out=t)
@@ -573,7 +573,7 @@ class PreparedModel:
         elif terms.T_B is terms.T_D:
             I = terms.T_D                                # reuse: T is not needed afterwards
             for c in range(3):
-                I[c] *= ip[c] - b[c]                     # I_c = b_c + T_c (i_c - b_c), as uw_sil.optics
+                I[c] *= ip[c] - b[c]                     # I_c = b_c + T_c (i_c - b_c), as uw_sil.sim.optics
                 I[c] += b[c]
         else:
             I = ip * terms.T_D + b[:, None, None] * (1 - terms.T_B)

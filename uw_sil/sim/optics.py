@@ -42,10 +42,28 @@ __all__ = ["transmission", "fog_factor", "degrade", "PreparedRender", "FOG_MODES
 FOG_MODES = ("exp2", "exp", "none")
 
 
+def _check_distance(name: str, arr) -> None:
+    """Ranges and depths are >= 0 metres or +inf (nothing hit); NaN and negative values are refused."""
+    arr = np.asarray(arr)
+    bad = np.isnan(arr) | (arr < 0)
+    if bad.any():
+        first = tuple(int(i) for i in np.argwhere(bad)[0])
+        n_nan, n_neg = int(np.isnan(arr).sum()), int((arr < 0).sum())
+        raise ValueError(f"{name} has {n_nan} NaN and {n_neg} negative value(s) (first at index {first}: "
+                         f"{float(arr[first])}): must be >= 0 metres, or +inf where nothing was hit")
+
+
 def transmission(range_m, a) -> np.ndarray:
-    """Direct transmission ``exp(-r * a_c)`` (Eq. 1), shape (..., 3); 0 where ``r = inf``."""
+    """Direct transmission ``exp(-r * a_c)`` (Eq. 1), shape (..., 3); 0 where ``r = inf``.
+
+    Raises ValueError for NaN or negative ranges and for attenuations that are negative or not finite.
+    """
+    _check_distance("range", range_m)
+    a_in = np.asarray(a, dtype=float)
+    if not np.all(np.isfinite(a_in)) or np.any(a_in < 0):
+        raise ValueError(f"attenuation must be finite and >= 0 (1/m), got {a_in.tolist()}")
     r = np.asarray(range_m, dtype=np.float32)[..., None]
-    a = np.asarray(a, dtype=np.float32)
+    a = a_in.astype(np.float32)
     with np.errstate(invalid="ignore"):
         e = np.exp(-r * a)
     return np.where(np.isfinite(r), e, np.float32(0.0))
@@ -56,6 +74,7 @@ def fog_factor(depth_m, rho_f: float, mode: str = "exp2") -> np.ndarray:
 
     ``exp2``: ``exp(-(rho_F z)^2)`` (Gazebo's default), ``exp``: ``exp(-rho_F z)``, ``none``: 1.
     """
+    _check_distance("depth", depth_m)
     z = np.asarray(depth_m, dtype=np.float32)
     if mode not in FOG_MODES:
         raise ValueError(f"unknown fog mode {mode!r}; expected one of {FOG_MODES}")
@@ -83,8 +102,7 @@ def _check_render(rgb, range_m, depth_m):
     for name, arr in (("range", range_m), ("depth", depth_m)):
         if arr.shape != rgb.shape[:2]:
             raise ValueError(f"{name} shape {arr.shape} does not match image shape {rgb.shape[:2]}")
-        if np.isnan(arr).any() or (arr < 0).any():
-            raise ValueError(f"{name} must be >= 0 or inf (no hit), found NaN or negative values")
+        _check_distance(name, arr)
     return rgb, range_m, depth_m
 
 

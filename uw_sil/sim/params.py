@@ -163,9 +163,14 @@ class UnderwaterParams:
 
     @classmethod
     def from_dict(cls, d: dict) -> "UnderwaterParams":
+        """From a mapping with the 7 names of :data:`RGB_NAMES` (other keys are ignored); values must be numbers."""
         missing = [n for n in RGB_NAMES if n not in d]
         if missing:
             raise ValueError(f"missing parameters: {', '.join(missing)}")
+        for n in RGB_NAMES:
+            v = d[n]
+            if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, float, np.integer, np.floating)):
+                raise ValueError(f"{n} must be a number, got {v!r}")
         return cls.from_vector([d[n] for n in RGB_NAMES])
 
 

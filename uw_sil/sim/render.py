@@ -57,6 +57,14 @@ Pitfalls handled here
 - Do not ``fork`` a process that holds a renderer: the child hangs. Use the ``spawn``
   start method of :mod:`multiprocessing`, or fork before creating the renderer.
 - A renderer is not thread-safe; use one per thread or process.
+- Draw order: pyrender keeps mesh nodes in a ``set`` (iteration order = memory addresses of the
+  node objects) and draws them in that order where its distance sort ties (every node of the
+  shipped panel sits at the origin). Where two surfaces have the same depth (the textured plate
+  face on the plate body, at its edges) the first drawn wins, so the clean colour of such pixels
+  changed from one :class:`Renderer` to the next, within a process and across processes (up to
+  80 grey levels at single pixels; enough to change θ by ~4e-5 and a fit's result). Meshes are
+  therefore drawn in the order of the model (:class:`_OrderedScene`): the earlier one wins ties,
+  in the colour pass as in the segmentation pass, and a pose renders the same everywhere.
 """
 from __future__ import annotations
 
@@ -82,6 +90,7 @@ DEFAULT_ALBEDO = (150, 150, 150)
 _CV_TO_GL = np.diag([1.0, -1.0, -1.0, 1.0])
 
 _pyrender_module = None
+_ordered_scene_class = None
 
 
 def _patch_context_key():
@@ -122,6 +131,34 @@ def _pyrender():
         _patch_context_key()
         _pyrender_module = pyrender
     return _pyrender_module
+
+
+def _OrderedScene():
+    """``pyrender.Scene`` subclass whose mesh nodes iterate in the order they were added.
+
+    pyrender sorts ``scene.mesh_nodes`` by the distance of each node's origin to the camera with a
+    stable sort, so ties keep the iteration order of the underlying ``set``, which depends on where
+    the node objects happen to be in memory (see "Draw order" in the module docstring).
+    """
+    global _ordered_scene_class
+    if _ordered_scene_class is None:
+        pyrender = _pyrender()
+
+        class OrderedScene(pyrender.Scene):
+            def __init__(self, *args, **kwargs):
+                self._draw_index = {}
+                super().__init__(*args, **kwargs)
+
+            def add_node(self, node, parent_node=None):
+                super().add_node(node, parent_node=parent_node)
+                self._draw_index.setdefault(node, len(self._draw_index))
+
+            @property
+            def mesh_nodes(self):
+                return sorted(self._mesh_nodes, key=self._draw_index.__getitem__)
+
+        _ordered_scene_class = OrderedScene
+    return _ordered_scene_class
 
 
 @dataclass(eq=False)
@@ -209,7 +246,7 @@ class Renderer:
         self._flags_color = pyrender.RenderFlags.FLAT | pyrender.RenderFlags.SKIP_CULL_FACES
         self._flags_seg = pyrender.RenderFlags.SEG | pyrender.RenderFlags.SKIP_CULL_FACES
 
-        self._scene = pyrender.Scene(bg_color=[0.0, 0.0, 0.0, 1.0], ambient_light=[0.0, 0.0, 0.0])
+        self._scene = _OrderedScene()(bg_color=[0.0, 0.0, 0.0, 1.0], ambient_light=[0.0, 0.0, 0.0])
         self.node_names: list[str] = []
         self.node_labels: list[int] = []
         self._seg_map = {}
