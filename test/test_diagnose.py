@@ -7,7 +7,7 @@ import os
 import numpy as np
 import pytest
 
-from uw_sil.cli import main
+from uw_sil.cli import EXIT_BAD_INPUT, main
 
 CASES = {"control": None, "artificial_light": {"artificial_light": "strong"},
          "vignetting": {"vignetting": "strong"}, "forward_scatter": {"forward_scatter": "strong"}}
@@ -94,10 +94,10 @@ def test_params_yaml_and_report(diagnoses):
 
 
 def test_exit_codes(bags, tmp_path, capsys):
-    assert main(["diagnose", "--bag", str(tmp_path / "missing.mcap")]) == 1
+    assert main(["diagnose", "--bag", str(tmp_path / "missing.mcap")]) == EXIT_BAD_INPUT
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "missing" in err[0]
-    assert main(["diagnose"]) == 1
+    assert main(["diagnose"]) == EXIT_BAD_INPUT
     assert "exactly one of --bag" in capsys.readouterr().err
     # a recording in which the scene model is never visible cannot be diagnosed
     from uw_sil.bags.synth import synthesize_trial
@@ -105,7 +105,7 @@ def test_exit_codes(bags, tmp_path, capsys):
 
     far = tmp_path / "far.mcap"
     synthesize_trial(far, n_frames=3, seed=0, camera=CameraModel.from_fov(160, 120), start_m=60.0, end_m=60.0)
-    assert main(["diagnose", "--bag", str(far), "--json", str(tmp_path / "x.json")]) == 1
+    assert main(["diagnose", "--bag", str(far), "--json", str(tmp_path / "x.json")]) == EXIT_BAD_INPUT
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "usable frame" in err[0]
     assert not (tmp_path / "x.json").exists()

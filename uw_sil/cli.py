@@ -505,7 +505,8 @@ def cmd_features(args) -> int:
 def cmd_diagnose(args) -> int:
     """Which physics does the recording hold that the simulation lacks? (uw_sil.fit.diagnose)
 
-    Exit 0 whatever the verdict (also "none"); 1 with one line naming the reason when it cannot diagnose."""
+    Exit 0 whatever the verdict (also "none"); EXIT_BAD_INPUT with one line naming the reason when it cannot
+    diagnose (unreadable bag, scene model never visible, too few frames)."""
     from .fit.backward import write_json_atomic
 
     if bool(args.bag) == bool(args.images):

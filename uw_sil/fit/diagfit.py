@@ -19,14 +19,19 @@ from __future__ import annotations
 import os
 import time
 from dataclasses import dataclass, field
-from typing import Callable, Optional, Sequence
+from typing import Optional, Sequence
 
 import numpy as np
 
 from ..sim.params import DEFAULT_RGB_BOUNDS, RGB_NAMES
 from .residuals import LABEL_PANEL, ReducedFrame, base_sim
 
-__all__ = ["BaseModel", "FrameObjective", "ModelFit", "fit_model", "noise_sigmas", "ConvergenceStop"]
+__all__ = ["BaseModel", "FrameObjective", "ModelFit", "fit_model", "noise_sigmas", "BASE_SIGMA0"]
+
+
+#: Initial CMA-ES steps of the base parameters from a least-squares start (fraction of each range): small, and a
+#: quarter of it for the background, which the water fixes (cf. the backward fit's measured defaults).
+BASE_SIGMA0 = np.array([0.02, 0.02, 0.02, 0.005, 0.005, 0.005, 0.02])
 
 
 class BaseModel:
@@ -174,23 +179,6 @@ def _hist_masks(rf: ReducedFrame):
     return [panel, ~panel]
 
 
-class ConvergenceStop:
-    """Optimizer callback: stop when the best θ improved by less than ``tol`` over ``patience``
-    iterations (also polls ``interrupt()``, which may raise KeyboardInterrupt)."""
-
-    def __init__(self, tol: float = 2e-4, patience: int = 6, interrupt: Optional[Callable] = None):
-        self.tol, self.patience, self.interrupt = float(tol), int(patience), interrupt
-        self.history: list = []
-
-    def __call__(self, it, x, f):
-        if self.interrupt is not None:
-            self.interrupt()
-        self.history.append(float(f))
-        if len(self.history) > self.patience and self.history[-1] - self.history[-1 - self.patience] < self.tol:
-            return True
-        return False
-
-
 @dataclass
 class ModelFit:
     """Result of :func:`fit_model`."""
@@ -214,7 +202,8 @@ class ModelFit:
 def fit_model(model, rframes, noise, x0, sigma0=0.1, seed: int = 0, max_iter: int = 40, popsize: int = 16,
               tol: float = 2e-4, patience: int = 6, interrupt=None, objective: Optional[FrameObjective] = None,
               fixed: Optional[np.ndarray] = None) -> ModelFit:
-    """Maximize mean θ over ``rframes`` with CMA-ES from ``x0`` (within ``model.bounds()``).
+    """Maximize mean θ over ``rframes`` with CMA-ES from ``x0`` (within ``model.bounds()``), stopping on
+    convergence (best θ gained <= ``tol`` over ``patience`` iterations) or after ``max_iter``.
 
     ``sigma0``: initial step as a fraction of each parameter's range (scalar or per parameter, through
     cma's ``CMA_stds``). ``fixed``: boolean mask of parameters held at ``x0``.
@@ -238,11 +227,15 @@ def fit_model(model, rframes, noise, x0, sigma0=0.1, seed: int = 0, max_iter: in
     def f(U):
         return obj(to_x(U))
 
-    stop = ConvergenceStop(tol, patience, interrupt)
+    def stop(it, x, f):
+        if interrupt is not None:
+            interrupt()
+        return False
+
     try:
         theta_start = float(obj(x0[None])[0])
         res = optimize(f, lo[free], hi[free], method="cmaes", seed=seed, max_iter=max_iter, swarm_size=popsize,
-                       x0=x0[free], sigma0=s_ref, callback=stop,
+                       x0=x0[free], sigma0=s_ref, callback=stop, tol=tol, patience=patience,
                        cma_options={"CMA_stds": list(sig / s_ref)})
     finally:
         if own:

@@ -48,7 +48,7 @@ from typing import Callable, Optional
 import numpy as np
 
 from ..sim.params import RGB_NAMES
-from .diagfit import BaseModel, FrameObjective, fit_model, noise_sigmas
+from .diagfit import BASE_SIGMA0, BaseModel, FrameObjective, fit_model, noise_sigmas
 from .residuals import (LABEL_PANEL, DiagFrame, ReducedFrame, base_sim, load_frames, locate, reduce_frame,
                         reduction_factor, residual_maps, split_frames)
 
@@ -492,7 +492,7 @@ def _pose_hint(motion, sign: float = 1.0) -> dict:
 
 def _sigma0(effect: str, free) -> np.ndarray:
     """Initial CMA-ES steps (fraction of each range) for base then effect parameters."""
-    base = np.full(7, 0.04)
+    base = BASE_SIGMA0 * 1.5
     eff = {"pose_error": 0.03, "artificial_light": 0.12, "unmodeled_geometry": 0.12}.get(effect, 0.1)
     return np.concatenate([base, np.full(len(free), eff)])
 
@@ -527,7 +527,7 @@ def diagnose_frames(frames: list, fog: str = "exp2", seed: int = 0, max_candidat
         f"{len(held_f)} held out")
     x_lin = linear_start([_ls_frame(r) for r in rfit], ParamSpace("rgb"), fog=fog)
     base_model = BaseModel(rfit, fog)
-    base_fit = fit_model(base_model, rfit, nfit, x_lin, sigma0=0.06, seed=seed, max_iter=max_iter,
+    base_fit = fit_model(base_model, rfit, nfit, x_lin, sigma0=BASE_SIGMA0, seed=seed, max_iter=max_iter,
                          popsize=popsize, interrupt=interrupt)
     with FrameObjective(rheld, BaseModel(rheld, fog), nheld, seed=seed) as oh:
         base_held_pf = oh.per_frame(base_fit.x[None])[0]
@@ -536,7 +536,7 @@ def diagnose_frames(frames: list, fog: str = "exp2", seed: int = 0, max_candidat
     # ---------------------------------------------------------------- run-to-run noise of the fit
     t0 = time.perf_counter()
     say("second base fit (other seed): the fit's run-to-run noise")
-    base_fit2 = fit_model(base_model, rfit, nfit, x_lin, sigma0=0.06, seed=seed + 1, max_iter=max_iter,
+    base_fit2 = fit_model(base_model, rfit, nfit, x_lin, sigma0=BASE_SIGMA0, seed=seed + 1, max_iter=max_iter,
                           popsize=popsize, interrupt=interrupt)
     with FrameObjective(rheld, BaseModel(rheld, fog), nheld, seed=seed) as oh:
         base2_held_pf = oh.per_frame(base_fit2.x[None])[0]
