@@ -1,0 +1,134 @@
+"""Mismatch diagnosis (uw_sil.fit.diagnose, `uw-sil diagnose`): small synthetic trials with one concealed
+effect each (160x120, 6 frames) must be named; an effect-free control must give no verdict; the JSON
+follows its schema; the command's exit codes."""
+import json
+import os
+
+import numpy as np
+import pytest
+
+from uw_sil.cli import EXIT_BAD_INPUT, main
+
+CASES = {"control": None, "artificial_light": {"artificial_light": "strong"},
+         "vignetting": {"vignetting": "strong"}, "forward_scatter": {"forward_scatter": "strong"}}
+
+
+@pytest.fixture(scope="module")
+def bags(tmp_path_factory):
+    from uw_sil.bags.synth import synthesize_trial, truth_path
+    from uw_sil.sim.camera import CameraModel
+
+    d = tmp_path_factory.mktemp("diag")
+    out = {}
+    for name, eff in CASES.items():
+        bag = d / f"{name}.mcap"
+        synthesize_trial(bag, n_frames=6, seed=3, camera=CameraModel.from_fov(160, 120), effects=eff)
+        truth_path(bag).unlink()              # the diagnosis must not need (or see) the truth
+        out[name] = bag
+    return out
+
+
+@pytest.fixture(scope="module")
+def diagnoses(bags, tmp_path_factory):
+    d = tmp_path_factory.mktemp("diagjson")
+    out = {}
+    for name, bag in bags.items():
+        js = d / f"{name}.json"
+        args = ["diagnose", "--bag", str(bag), "--frames", "6", "--json", str(js)]
+        if name == "vignetting":
+            args += ["--params-out", str(d / "v.yaml"), "--report", str(d / "report")]
+        assert main(args) == 0
+        out[name] = json.loads(js.read_text())
+    out["_dir"] = d
+    return out
+
+
+@pytest.mark.parametrize("effect", ["artificial_light", "vignetting", "forward_scatter"])
+def test_names_the_concealed_effect(diagnoses, effect):
+    doc = diagnoses[effect]
+    assert doc["verdict"], f"no verdict for a trial with {effect}: candidates {doc['candidates']}"
+    assert doc["verdict"][0]["effect"] == effect
+    assert doc["final"]["theta_heldout"] > doc["base"]["theta_heldout"]
+
+
+def test_control_gives_no_verdict(diagnoses):
+    doc = diagnoses["control"]
+    assert doc["verdict"] == [], doc["verdict"]
+    assert doc["final"]["theta_heldout"] == doc["base"]["theta_heldout"]
+
+
+def test_json_follows_the_schema(diagnoses):
+    from uw_sil.fit.diagnose import SCHEMA_VERSION, validate_diagnosis_json
+
+    for name in CASES:
+        doc = diagnoses[name]
+        validate_diagnosis_json(doc)
+        assert doc["schema_version"] == SCHEMA_VERSION
+        kinds = {r["kind"] for r in doc["mismatch"]["regions"]}
+        assert {"class", "grid"} <= kinds
+    broken = json.loads(json.dumps(diagnoses["vignetting"]))
+    broken["verdict"][0]["confidence"] = 1.5
+    with pytest.raises(ValueError, match="confidence"):
+        validate_diagnosis_json(broken)
+    broken["verdict"][0]["confidence"] = 0.5
+    del broken["final"]
+    with pytest.raises(ValueError, match="final"):
+        validate_diagnosis_json(broken)
+
+
+def test_params_yaml_and_report(diagnoses):
+    import yaml
+
+    d = diagnoses["_dir"]
+    p = yaml.safe_load((d / "v.yaml").read_text())["/**"]["ros__parameters"]
+    assert p["effects"] == "vignetting"
+    assert p["vignetting.k1"] < -0.2                  # the strong preset darkens the corners to ~40 %
+    for k in ("a_r", "b_g", "rho_f", "fog_mode", "noise_sigma"):
+        assert k in p
+    from uw_sil.sim.effects import get_effect
+    from uw_sil.sim.model import flat_to_effect_params
+
+    assert set(flat_to_effect_params(p)) == {"vignetting"}      # what sim_camera reads back
+    for name in ("index.html", "residuals.png", "signatures.png", "models.png", "heldout.png"):
+        assert (d / "report" / name).stat().st_size > 1000
+
+
+def test_exit_codes(bags, tmp_path, capsys):
+    assert main(["diagnose", "--bag", str(tmp_path / "missing.mcap")]) == EXIT_BAD_INPUT
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "missing" in err[0]
+    assert main(["diagnose"]) == EXIT_BAD_INPUT
+    assert "exactly one of --bag" in capsys.readouterr().err
+    # a recording in which the scene model is never visible cannot be diagnosed
+    from uw_sil.bags.synth import synthesize_trial
+    from uw_sil.sim.camera import CameraModel
+
+    far = tmp_path / "far.mcap"
+    synthesize_trial(far, n_frames=3, seed=0, camera=CameraModel.from_fov(160, 120), start_m=60.0, end_m=60.0)
+    assert main(["diagnose", "--bag", str(far), "--json", str(tmp_path / "x.json")]) == EXIT_BAD_INPUT
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "usable frame" in err[0]
+    assert not (tmp_path / "x.json").exists()
+
+
+def test_images_mode_on_a_folder(tmp_path):
+    """Footage without a scene model: a vignetted sequence is judged as vignetting, and the effects that need
+    geometry are listed as not judged."""
+    import cv2
+
+    rng = np.random.default_rng(0)
+    h, w = 120, 160
+    y, x = np.mgrid[0:h, 0:w]
+    rho2 = ((x - (w - 1) / 2) ** 2 + (y - (h - 1) / 2) ** 2) / (0.25 * (w * w + h * h))
+    V = 1 - 0.5 * rho2
+    for i in range(5):
+        img = np.stack([np.full((h, w), v) for v in (20.0, 110.0, 140.0)], -1) * V[..., None]
+        img += rng.normal(0, 1.5, img.shape)
+        cv2.imwrite(str(tmp_path / f"f{i}.png"), np.clip(img[..., ::-1], 0, 255).astype(np.uint8))
+    js = tmp_path / "img.json"
+    assert main(["diagnose", "--images", str(tmp_path), "--json", str(js)]) == 0
+    doc = json.loads(js.read_text())
+    assert doc["mode"] == "images" and doc["candidates"] == []
+    assert "vignetting" in [v["effect"] for v in doc["verdict"]]
+    assert {"forward_scatter", "pose_error", "unmodeled_geometry", "backscatter_coefficient"} == \
+        {n["effect"] for n in doc["not_judged"]}

@@ -1,0 +1,248 @@
+"""Fits of the diagnosis: θ over reduced frames for the base model or the base model plus effects.
+
+A *candidate model* maps parameter vectors ``x = (7 base parameters, effect parameters ...)`` to
+simulated frames. :class:`BaseModel` is paper Eq. 1 with fog, area-exact on reduced frames
+(:func:`uw_sil.fit.residuals.base_sim`); :class:`EffectModel` (in :mod:`uw_sil.fit.diagnose`) adds
+effects of :mod:`uw_sil.sim.effects`. :class:`FrameObjective` is mean θ over frames for batches of
+such vectors (the camera noise estimated on each real frame's water is added to every candidate as a
+fixed realization, as in :class:`uw_sil.fit.backward.BackwardObjective`, unless the model draws its own
+noise). :func:`fit_model` maximizes it with CMA-ES and stops on convergence.
+
+References
+----------
+.. [1] N. Hansen, "The CMA Evolution Strategy: A Tutorial", arXiv:1604.00772, 2016.
+.. [2] O. Álvarez-Tuñón, A. Jardón and C. Balaguer, "Generation and Processing of Simulated Underwater
+   Images for Infrastructure Visual Inspection with UUVs", Sensors 19(24), 5497, 2019 (θ, Eq. 1).
+"""
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass, field
+from typing import Optional, Sequence
+
+import numpy as np
+
+from ..sim.params import DEFAULT_RGB_BOUNDS, RGB_NAMES
+from .residuals import LABEL_PANEL, ReducedFrame, base_sim
+
+__all__ = ["BaseModel", "FrameObjective", "ModelFit", "fit_model", "noise_sigmas", "BASE_SIGMA0"]
+
+
+#: Initial CMA-ES steps of the base parameters from a least-squares start (fraction of each range): small, and a
+#: quarter of it for the background, which the water fixes (cf. the backward fit's measured defaults).
+BASE_SIGMA0 = np.array([0.02, 0.02, 0.02, 0.005, 0.005, 0.005, 0.02])
+
+
+class BaseModel:
+    """Paper Eq. 1 with fog on reduced frames; parameters :data:`uw_sil.sim.params.RGB_NAMES`."""
+
+    effects: tuple = ()
+    owns_noise = False
+
+    def __init__(self, rframes: Sequence[ReducedFrame], fog: str = "exp2"):
+        self.rframes = list(rframes)
+        self.fog = fog
+
+    @property
+    def names(self) -> tuple:
+        return RGB_NAMES
+
+    def bounds(self) -> tuple:
+        return DEFAULT_RGB_BOUNDS[0].copy(), DEFAULT_RGB_BOUNDS[1].copy()
+
+    def simulate(self, k: int, X: np.ndarray, out: Optional[np.ndarray] = None) -> np.ndarray:
+        """Frames ``k`` for candidate vectors X (N, d): (N, h, w, 3) float32 in 0..1."""
+        X = np.atleast_2d(X)
+        rf = self.rframes[k]
+        if out is None:
+            out = np.empty((len(X),) + rf.shape + (3,), np.float32)
+        for j, x in enumerate(X):
+            out[j] = base_sim(rf, _clean_base(x[:7]), self.fog)
+        return out
+
+    def params_of(self, x) -> dict:
+        """``{"base": {a_r: ...}, "effects": {}}`` of a vector."""
+        return {"base": {n: float(v) for n, v in zip(RGB_NAMES, _clean_base(x[:7]))}, "effects": {}}
+
+
+def _clean_base(p) -> np.ndarray:
+    p = np.clip(np.asarray(p, dtype=float), 0.0, None)
+    p[3:6] = np.clip(p[3:6], 0.0, 1.0)
+    return p
+
+
+def noise_sigmas(rframes: Sequence[ReducedFrame]) -> list:
+    """Camera noise per frame and channel (grey levels at the reduced size), from the real water."""
+    from ..sim.noise import estimate_noise_sigma
+
+    out = []
+    for rf in rframes:
+        try:
+            s = estimate_noise_sigma(rf.image, rf.water)
+        except ValueError:
+            s = estimate_noise_sigma(rf.image)
+        out.append(np.asarray(s, float))
+    return out
+
+
+class FrameObjective:
+    """Mean θ over reduced frames for batches of candidate vectors of a candidate model.
+
+    Parameters
+    ----------
+    rframes : list of ReducedFrame
+    model : BaseModel or compatible (``simulate(k, X)``, ``owns_noise``)
+    noise : list of (3,) arrays
+        Camera noise per frame (grey levels) added as a fixed realization (common random numbers),
+        unless ``model.owns_noise``.
+    seed : int
+    workers : int, optional
+        Threads (default: up to 2).
+    """
+
+    def __init__(self, rframes, model, noise, seed: int = 0, channels: str = "HSV", batch: int = 16,
+                 workers: Optional[int] = None):
+        from ..metrics.theta import ThetaReference
+        from ..sim.noise import NoiseField
+
+        self.rframes = list(rframes)
+        self.model = model
+        self.workers = max(1, int(workers if workers is not None else min(2, os.cpu_count() or 1)))
+        self._refs = [[ThetaReference(rf.image, channels=channels, hist_mask=_hist_masks(rf))
+                       for rf in self.rframes] for _ in range(self.workers)]
+        self.noise = [None if model.owns_noise or not np.any(np.asarray(s) > 0) else
+                      NoiseField(rf.shape + (3,), s, seed=seed + 7919 * i)
+                      for i, (rf, s) in enumerate(zip(self.rframes, noise))]
+        self.batch = max(1, int(batch))
+        self._pool = None
+        self.n_calls = 0
+
+    def per_frame(self, X) -> np.ndarray:
+        """θ per candidate and frame, (N, K)."""
+        X = np.atleast_2d(np.asarray(X, dtype=float))
+        out = np.full((len(X), len(self.rframes)), np.nan)
+        parts = [p for p in np.array_split(np.arange(len(X)), self.workers) if p.size]
+        if len(parts) == 1:
+            self._part(0, X, parts[0], out)
+        else:
+            if self._pool is None:
+                from concurrent.futures import ThreadPoolExecutor
+
+                self._pool = ThreadPoolExecutor(self.workers, thread_name_prefix="uw_sil-diag")
+            for fut in [self._pool.submit(self._part, w, X, idx, out) for w, idx in enumerate(parts)]:
+                fut.result()
+        self.n_calls += len(X)
+        return out
+
+    def __call__(self, X) -> np.ndarray:
+        return self.per_frame(X).mean(axis=1)
+
+    def _part(self, w, X, idx, out):
+        refs = self._refs[w]
+        for k, (ref, noise) in enumerate(zip(refs, self.noise)):
+            for s in range(0, len(idx), self.batch):
+                sel = idx[s:s + self.batch]
+                try:
+                    imgs = self.model.simulate(k, X[sel])
+                except (ValueError, FloatingPointError):
+                    out[sel, k] = np.nan
+                    continue
+                imgs *= 255.0
+                if noise is not None:
+                    noise.apply(imgs)
+                else:
+                    np.clip(imgs, 0.0, 255.0, out=imgs)
+                bad = ~np.isfinite(imgs).reshape(len(sel), -1).all(axis=1)
+                if bad.any():
+                    imgs[bad] = 0.0
+                t = ref.score(imgs)
+                t[bad] = np.nan
+                out[sel, k] = t
+
+    def close(self):
+        if self._pool is not None:
+            self._pool.shutdown()
+            self._pool = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+def _hist_masks(rf: ReducedFrame):
+    panel = rf.labels == LABEL_PANEL
+    if not panel.any() or panel.all():
+        return None
+    return [panel, ~panel]
+
+
+@dataclass
+class ModelFit:
+    """Result of :func:`fit_model`."""
+
+    model: object
+    x: np.ndarray
+    theta_train: float
+    theta_start: float
+    n_evals: int
+    n_iters: int
+    stop_reason: str
+    wall_time_s: float
+    seed: int
+    history: list = field(default_factory=list)
+
+    @property
+    def params(self) -> dict:
+        return self.model.params_of(self.x)
+
+
+def fit_model(model, rframes, noise, x0, sigma0=0.1, seed: int = 0, max_iter: int = 40, popsize: int = 16,
+              tol: float = 2e-4, patience: int = 6, interrupt=None, objective: Optional[FrameObjective] = None,
+              fixed: Optional[np.ndarray] = None) -> ModelFit:
+    """Maximize mean θ over ``rframes`` with CMA-ES from ``x0`` (within ``model.bounds()``), stopping on
+    convergence (best θ gained <= ``tol`` over ``patience`` iterations) or after ``max_iter``.
+
+    ``sigma0``: initial step as a fraction of each parameter's range (scalar or per parameter, through
+    cma's ``CMA_stds``). ``fixed``: boolean mask of parameters held at ``x0``.
+    """
+    from .optimize import optimize
+
+    t0 = time.perf_counter()
+    lo, hi = model.bounds()
+    x0 = np.clip(np.asarray(x0, float), lo, hi)
+    own = objective is None
+    obj = objective or FrameObjective(rframes, model, noise, seed=seed, batch=popsize)
+    free = np.ones(len(lo), bool) if fixed is None else ~np.asarray(fixed, bool)
+    sig = np.broadcast_to(np.asarray(sigma0, float), lo.shape).copy()[free]
+    s_ref = float(np.max(sig))
+
+    def to_x(U):
+        X = np.repeat(x0[None], len(np.atleast_2d(U)), axis=0)
+        X[:, free] = np.atleast_2d(U)
+        return X
+
+    def f(U):
+        return obj(to_x(U))
+
+    def stop(it, x, f):
+        if interrupt is not None:
+            interrupt()
+        return False
+
+    try:
+        theta_start = float(obj(x0[None])[0])
+        res = optimize(f, lo[free], hi[free], method="cmaes", seed=seed, max_iter=max_iter, swarm_size=popsize,
+                       x0=x0[free], sigma0=s_ref, callback=stop, tol=tol, patience=patience,
+                       cma_options={"CMA_stds": list(sig / s_ref)})
+    finally:
+        if own:
+            obj.close()
+    x, f_best = to_x(res.x_best)[0], float(res.f_best)
+    if not f_best >= theta_start:
+        # cma's bound handling moves an injected start that lies near a bound: never return worse than it
+        x, f_best = x0.copy(), theta_start
+    return ModelFit(model, x, f_best, theta_start, int(res.n_evals), int(res.n_iters),
+                    str(res.stop_reason), time.perf_counter() - t0, seed, [float(v) for v in res.history_best_f])

@@ -1,0 +1,344 @@
+"""Locate the mismatch between a recording and the fitted simulation: frames, reduced copies, residual maps.
+
+The diagnosis (:mod:`uw_sil.fit.diagnose`) works on a few frames of a recording, each rendered once at
+its recorded pose (:class:`DiagFrame`). Fits and most signature tests run on a box-downsampled copy
+(:class:`ReducedFrame`): the real frame is averaged over ``f x f`` blocks, and so is the render, with
+the fraction of each block that hits the model kept as ``cover``. The base model (paper Eq. 1 with fog)
+on such a block is then exactly ``b + cover * T * (i - b)`` (for a transmission ``T`` constant over the
+block), i.e. the area average of the full-resolution simulation. Rendering at the reduced size instead
+would alias the silhouettes while the real frame's are area-averaged, which looks like blur that the
+recording does not have.
+
+:func:`residual_maps` gives real - sim per frame and channel; :func:`locate` says where the mismatch
+is: object vs water, a 3x3 grid of image regions, panel parts (render part ids -> node names), range
+bins, each as RMS and mean residual in grey levels and as a share of the total squared residual above
+the camera noise.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Optional, Sequence
+
+import numpy as np
+
+__all__ = ["DiagFrame", "ReducedFrame", "box_down", "reduce_frame", "reduction_factor", "load_frames",
+           "split_frames", "base_sim", "residual_maps", "locate", "LABEL_WATER", "LABEL_PANEL"]
+
+LABEL_WATER = 0
+LABEL_PANEL = 1
+
+
+@dataclass
+class DiagFrame:
+    """One recorded frame with its render at the recorded pose (full resolution)."""
+
+    index: int                 # position in the recording
+    stamp_ns: int
+    image: np.ndarray          # (H, W, 3) uint8 RGB
+    render: object             # uw_sil.sim.render.RenderResult
+    camera: object             # uw_sil.sim.camera.CameraModel
+    pose: np.ndarray           # (4, 4) T_cam_panel as recorded
+    coverage: float            # fraction of pixels on the model
+    role: str = "fit"          # 'fit' or 'heldout'
+    part_names: Sequence[str] = ()
+
+    @property
+    def range_median(self) -> float:
+        r = self.render.range[np.isfinite(self.render.range)]
+        return float(np.median(r)) if r.size else float("inf")
+
+
+def box_down(a: np.ndarray, f: int) -> np.ndarray:
+    """Mean over ``f x f`` blocks of the first two axes (cropped to a multiple of ``f``), float32."""
+    a = np.asarray(a)
+    if f == 1:
+        return a.astype(np.float32, copy=True)
+    h, w = (a.shape[0] // f) * f, (a.shape[1] // f) * f
+    a = a[:h, :w].astype(np.float32, copy=False)
+    return a.reshape(h // f, f, w // f, f, *a.shape[2:]).mean(axis=(1, 3), dtype=np.float32)
+
+
+def reduction_factor(width: int, target_width: int = 320) -> int:
+    """Integer block size that brings ``width`` to about ``target_width`` (at least 1)."""
+    return max(1, int(round(width / float(target_width))))
+
+
+@dataclass
+class ReducedFrame:
+    """A :class:`DiagFrame` box-downsampled by ``factor`` (see the module docstring).
+
+    Attributes
+    ----------
+    image : (h, w, 3) float32, real frame in grey levels (0..255)
+    rgb : (h, w, 3) float32, clean render averaged over the block's model pixels (0 where none)
+    cover : (h, w) float32, fraction of the block on the model
+    range, depth : (h, w) float32, averaged over the block's model pixels; ``inf`` where ``cover == 0``
+    labels : (h, w) uint8, label of the block's centre pixel where ``cover >= 0.5``, else 0 (water)
+    part_ids : (h, w) uint16, part of the block's centre pixel
+    obj : (h, w) bool, blocks entirely on the panel and not on a part boundary (no mixed pixels)
+    water : (h, w) bool, blocks with no model pixel at least ``margin`` blocks away from the model
+    """
+
+    frame: DiagFrame
+    factor: int
+    image: np.ndarray
+    rgb: np.ndarray
+    cover: np.ndarray
+    range: np.ndarray
+    depth: np.ndarray
+    labels: np.ndarray
+    part_ids: np.ndarray
+    obj: np.ndarray
+    water: np.ndarray
+    camera: object = None
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def shape(self) -> tuple:
+        return self.cover.shape
+
+    @property
+    def r_fin(self) -> np.ndarray:
+        """Range with 0 where nothing is hit."""
+        return np.where(self.cover > 0, self.range, np.float32(0.0))
+
+
+def dilate(mask: np.ndarray, r: int) -> np.ndarray:
+    import cv2
+
+    if r <= 0:
+        return mask.copy()
+    k = np.ones((2 * r + 1, 2 * r + 1), np.uint8)
+    return cv2.dilate(mask.astype(np.uint8), k) > 0
+
+
+def erode(mask: np.ndarray, r: int) -> np.ndarray:
+    import cv2
+
+    if r <= 0:
+        return mask.copy()
+    k = np.ones((2 * r + 1, 2 * r + 1), np.uint8)
+    return cv2.erode(mask.astype(np.uint8), k, borderValue=1) > 0
+
+
+def reduce_frame(frame: DiagFrame, factor: int, water_margin: int = 2) -> ReducedFrame:
+    """Box-downsample a frame and its render (see :class:`ReducedFrame`)."""
+    rr = frame.render
+    hit = np.isfinite(rr.range) & np.isfinite(rr.depth)
+    f = int(factor)
+    cover = box_down(hit, f)
+    safe = np.maximum(cover, 1e-6)
+    rgb = box_down(np.where(hit[..., None], rr.rgb, 0.0), f) / safe[..., None]
+    rng = box_down(np.where(hit, rr.range, 0.0), f) / safe
+    dep = box_down(np.where(hit, rr.depth, 0.0), f) / safe
+    none = cover <= 0
+    rgb[none] = 0.0
+    rng[none] = np.inf
+    dep[none] = np.inf
+    h, w = cover.shape
+    c = f // 2
+    labels_c = rr.labels[c:h * f:f, c:w * f:f][:h, :w]
+    parts_c = rr.part_ids[c:h * f:f, c:w * f:f][:h, :w]
+    labels = np.where(cover >= 0.5, labels_c, 0).astype(np.uint8)
+    # pure blocks: one part over the whole block (no silhouette, no part boundary inside)
+    pmax = rr.part_ids[:h * f, :w * f].reshape(h, f, w, f).max(axis=(1, 3))
+    pmin = rr.part_ids[:h * f, :w * f].reshape(h, f, w, f).min(axis=(1, 3))
+    lab_min = rr.labels[:h * f, :w * f].reshape(h, f, w, f).min(axis=(1, 3))
+    obj = (cover >= 1.0) & (pmax == pmin) & (lab_min == LABEL_PANEL)
+    water = ~dilate(cover > 0, water_margin)
+    return ReducedFrame(frame, f, box_down(frame.image, f), rgb.astype(np.float32), cover, rng.astype(np.float32),
+                        dep.astype(np.float32), labels, parts_c.astype(np.uint16), obj, water,
+                        camera=frame.camera.scaled(1.0 / f) if f > 1 else frame.camera)
+
+
+def base_sim(rf: ReducedFrame, params, fog: str = "exp2") -> np.ndarray:
+    """Base model (Eq. 1 with fog) on a reduced frame, area-exact at silhouettes: (h, w, 3) in 0..1.
+
+    ``params``: the 7-vector ``(a_r, a_g, a_b, b_r, b_g, b_b, rho_f)``.
+    """
+    p = np.asarray(params, dtype=np.float32).ravel()
+    r = rf.r_fin
+    z = np.where(rf.cover > 0, rf.depth, np.float32(0.0))
+    if fog == "exp2":
+        fz = (p[6] * z) ** 2
+    elif fog == "exp":
+        fz = p[6] * z
+    else:
+        fz = np.zeros_like(z)
+    out = np.empty(rf.shape + (3,), np.float32)
+    for c in range(3):
+        T = np.exp(-(r * p[c] + fz)) * rf.cover
+        out[..., c] = p[3 + c] + T * (rf.rgb[..., c] - p[3 + c])
+    return out
+
+
+def load_frames(bag, k: int = 8, model=None, min_coverage: float = 0.01, image_topic: str = "/camera/image_raw",
+                max_frames_scan: int = 100000, renderer=None) -> list:
+    """Read up to ``k`` frames spread evenly over a recording, render each at its recorded pose.
+
+    Frames where the model covers less than ``min_coverage`` of the image are skipped (and replaced by
+    other frames when the recording has more). Raises ValueError when fewer than 2 usable frames remain.
+    """
+    from ..bags import open_bag, read_samples
+    from ..sim.render import Renderer
+
+    info = open_bag(bag)
+    if image_topic not in info.topics:
+        raise ValueError(f"bag {bag} has no topic {image_topic!r} (topics: {', '.join(sorted(info.topics))})")
+    n = int(info.topics[image_topic].count or 0)
+    if n < 1:
+        raise ValueError(f"bag {bag}: no images on {image_topic}")
+    # candidate order: an even spread first, then the rest (to replace unusable frames)
+    spread = list(dict.fromkeys(np.linspace(0, n - 1, min(k, n)).round().astype(int).tolist()))
+    wanted = set(spread)
+    frames, skipped = [], []
+    own = renderer is None
+    rend = renderer
+    samples = []
+    try:
+        for i, s in enumerate(read_samples(bag, image_topic=image_topic)):
+            if i >= max_frames_scan:
+                break
+            samples.append((i, s) if i in wanted or n <= 4 * k else (i, None))
+        # the stream may hold fewer samples than the topic count (unpaired images): rebuild the spread
+        avail = [i for i, s in samples]
+        if not avail:
+            raise ValueError(f"bag {bag}: no image could be paired with camera_info and /panel/pose")
+        by_idx = dict(samples)
+        order = [avail[j] for j in dict.fromkeys(np.linspace(0, len(avail) - 1, min(k, len(avail)))
+                                                .round().astype(int).tolist())]
+        rest = [i for i in avail if i not in order]
+        for i in order + rest:
+            if len(frames) >= k:
+                break
+            s = by_idx.get(i)
+            if s is None:
+                continue
+            if rend is None:
+                rend = Renderer(model, camera=s.camera)
+            elif rend.camera != s.camera:
+                rend.camera = s.camera
+            rr = rend.render(s.pose)
+            cov = float(np.mean(np.isfinite(rr.range)))
+            if cov < min_coverage:
+                skipped.append((i, f"model covers {100 * cov:.1f}% of the image"))
+                continue
+            if frames and s.image.shape != frames[0].image.shape:
+                raise ValueError(f"frame {i} is {s.image.shape[1]}x{s.image.shape[0]} but earlier frames are "
+                                 f"{frames[0].image.shape[1]}x{frames[0].image.shape[0]}")
+            frames.append(DiagFrame(i, int(s.stamp_ns), np.ascontiguousarray(s.image), rr, s.camera,
+                                    np.asarray(s.pose, float), cov, part_names=tuple(rend.node_names)))
+    finally:
+        if own and rend is not None:
+            rend.close()
+    if len(frames) < 2:
+        why = f"; e.g. frame {skipped[0][0]}: {skipped[0][1]}" if skipped else ""
+        raise ValueError(f"bag {bag}: only {len(frames)} usable frame(s) showing the scene model (need >= 2){why}")
+    frames.sort(key=lambda f: f.index)
+    return frames
+
+
+def split_frames(frames: list, heldout_share: float = 0.5) -> tuple:
+    """Assign roles: fit and held-out frames interleaved over range (both spread from far to near).
+
+    Frames are sorted by median range and every second one (starting with the second farthest) is held
+    out, so both sets span the approach. At least one frame of each. Returns (fit, heldout) lists.
+    """
+    if len(frames) < 2:
+        raise ValueError("need at least 2 frames to hold some out")
+    order = sorted(frames, key=lambda f: -f.range_median)
+    n_held = min(len(frames) - 1, max(1, int(round(len(frames) * heldout_share))))
+    # evenly interleaved positions for the held-out frames
+    pos = set(np.round(np.linspace(1, len(frames) - 1, n_held)).astype(int).tolist()) if n_held < len(frames) - 1 \
+        else set(range(1, len(frames)))
+    if len(pos) < n_held:
+        pos = set(range(1, len(frames), 2))
+    fit, held = [], []
+    for j, f in enumerate(order):
+        (held if j in pos else fit).append(f)
+        f.role = "heldout" if j in pos else "fit"
+    return sorted(fit, key=lambda f: f.index), sorted(held, key=lambda f: f.index)
+
+
+def residual_maps(rframes: Sequence[ReducedFrame], sims: Sequence[np.ndarray]) -> list:
+    """real - sim in grey levels, (h, w, 3) float32 per frame (``sims`` in 0..1)."""
+    return [rf.image - 255.0 * s for rf, s in zip(rframes, sims)]
+
+
+def _stats(res: np.ndarray, mask: np.ndarray, noise2: float) -> Optional[dict]:
+    n = int(mask.sum())
+    if n == 0:
+        return None
+    v = res[mask]
+    ms = float(np.mean(v * v))
+    return {"pixels": n, "rms": float(np.sqrt(ms)), "mean": [float(x) for x in v.mean(axis=0)],
+            "rms_rgb": [float(x) for x in np.sqrt(np.mean(v * v, axis=0))],
+            "excess_ms": max(0.0, ms - noise2) * n}
+
+
+def locate(rframes: Sequence[ReducedFrame], residuals: Sequence[np.ndarray], noise_sigma: Sequence = None,
+           range_bins: Sequence[float] = (0.0, 1.5, 2.0, 2.5, 3.0, 3.5, np.inf)) -> dict:
+    """Where real and simulated frames differ, as numbers.
+
+    Returns ``{"regions": [...], "total_excess_ms": float}``; each region is ``{"kind", "name", "pixels",
+    "rms", "mean" (per channel), "rms_rgb", "share"}`` with ``share`` the region's part of the squared
+    residual above the camera noise (``noise_sigma``: per-frame per-channel sigma in grey levels at
+    the reduced size), summed over all frames. Kinds: ``class`` (object / water / silhouette band),
+    ``grid`` (3x3 image regions), ``part`` (panel part classes), ``range`` (object pixels per range bin).
+    """
+    from ..sim.scene import part_class
+
+    acc: dict = {}
+
+    def add(kind, name, st):
+        if st is None:
+            return
+        key = (kind, name)
+        a = acc.setdefault(key, {"kind": kind, "name": name, "pixels": 0, "ss": 0.0, "sum": np.zeros(3),
+                                 "ss_rgb": np.zeros(3), "excess": 0.0})
+        n = st["pixels"]
+        a["pixels"] += n
+        a["ss"] += st["rms"] ** 2 * n
+        a["sum"] += np.asarray(st["mean"]) * n
+        a["ss_rgb"] += np.asarray(st["rms_rgb"]) ** 2 * n
+        a["excess"] += st["excess_ms"]
+
+    for k, (rf, res) in enumerate(zip(rframes, residuals)):
+        s2 = float(np.mean(np.square(noise_sigma[k]))) if noise_sigma is not None else 0.0
+        band = (rf.cover > 0) & ~rf.obj & ~(rf.labels == LABEL_PANEL) | ((rf.cover > 0) & (rf.cover < 1))
+        band |= ~rf.water & (rf.cover <= 0)
+        obj = rf.obj
+        add("class", "object", _stats(res, obj, s2))
+        add("class", "water", _stats(res, rf.water, s2))
+        add("class", "silhouette", _stats(res, band & ~obj & ~rf.water, s2))
+        h, w = rf.shape
+        for gi, rn in enumerate(("top", "middle", "bottom")):
+            for gj, cn in enumerate(("left", "centre", "right")):
+                m = np.zeros((h, w), bool)
+                m[gi * h // 3:(gi + 1) * h // 3, gj * w // 3:(gj + 1) * w // 3] = True
+                add("grid", f"{rn}-{cn}", _stats(res, m, s2))
+        names = rf.frame.part_names
+        if names:
+            pids = np.unique(rf.part_ids[obj])
+            classes: dict = {}
+            for pid in pids:
+                if pid == 0 or pid > len(names):
+                    continue
+                classes.setdefault(part_class(names[pid - 1]) or "part", []).append(pid)
+            for cname, ids in classes.items():
+                add("part", cname, _stats(res, obj & np.isin(rf.part_ids, ids), s2))
+        rmed = rf.frame.range_median
+        for lo, hi in zip(range_bins[:-1], range_bins[1:]):
+            if lo <= rmed < hi:
+                add("range", f"{lo:g}-{hi:g} m" if np.isfinite(hi) else f">{lo:g} m", _stats(res, obj, s2))
+    total = sum(a["excess"] for a in acc.values() if a["kind"] == "class") or 1.0
+    regions = []
+    for a in acc.values():
+        n = max(1, a["pixels"])
+        regions.append({"kind": a["kind"], "name": a["name"], "pixels": int(a["pixels"]),
+                        "rms": float(np.sqrt(a["ss"] / n)), "mean": [float(x) for x in a["sum"] / n],
+                        "rms_rgb": [float(x) for x in np.sqrt(a["ss_rgb"] / n)],
+                        "share": float(a["excess"] / total)})
+    order = {"class": 0, "grid": 1, "part": 2, "range": 3}
+    regions.sort(key=lambda r: (order[r["kind"]], -r["share"]))
+    return {"regions": regions, "total_excess_ms": float(total)}
