@@ -294,7 +294,6 @@ def diagnose_images(src, image_topic: str = "/camera/image_raw", k: int = 12,
     if rr:
         black = np.median([r["black_dn"] for r in rr], axis=0)
         gains = np.median([r["grey_world_gains"] for r in rr], axis=0)
-        cast = float(np.max(np.abs(np.log(gains))))
         # a pedestal lifts the darkest pixels of *every* channel; a colour cast alone is what the water's
         # attenuation does too, so it is reported but not counted as camera response
         score_c = float(np.min(black)) / 12.0

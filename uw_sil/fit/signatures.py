@@ -53,13 +53,10 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from .residuals import LABEL_PANEL, ReducedFrame, dilate, erode
+from .residuals import ReducedFrame, dilate, erode
 
-__all__ = ["Signature", "SignatureContext", "run_signatures", "SIGNATURE_TESTS", "EFFECT_NAMES", "luminance",
+__all__ = ["Signature", "SignatureContext", "run_signatures", "luminance",
            "speck_masks", "speck_density", "noise_statistics", "trimmed_sigma"]
-
-EFFECT_NAMES = ("artificial_light", "forward_scatter", "backscatter_coefficient", "vignetting", "sensor_noise",
-                "marine_snow", "camera_response", "unmodeled_geometry", "pose_error")
 
 _MAD = 1.4826
 _LUMA = np.array([0.299, 0.587, 0.114], np.float32)
@@ -196,7 +193,6 @@ def sig_vignetting(ctx: SignatureContext) -> Signature:
     """
     rows = {c: [] for c in range(3)}
     per_frame = []
-    nfr = len(ctx.rframes)
     rho_c = 0.0
     prof = []
     for k, rf in enumerate(ctx.rframes):
@@ -241,7 +237,7 @@ def sig_vignetting(ctx: SignatureContext) -> Signature:
     chroma_spread = float(falloff.max() - falloff.min())
     frame_spread = float(np.std(per_frame)) if len(per_frame) > 1 else 0.0
     # object agreement: regress the object's log-ratio (per-frame offsets) on the water radial profile
-    xs, ys, fr = [], [], []
+    xs, ys = [], []
     for k, rf in enumerate(ctx.rframes):
         m = rf.obj
         if m.sum() < 50:
@@ -827,9 +823,6 @@ def sig_blur_and_shift(ctx: SignatureContext) -> tuple:
                      {"spectra": spectra, "blur": (ranges.tolist(), sp.tolist())})
     return blur, pose
 
-
-SIGNATURE_TESTS = ("vignetting", "artificial_light", "backscatter_coefficient", "camera_response",
-                   "unmodeled_geometry", "sensor_noise", "marine_snow", "blur_shift")
 
 
 def run_signatures(ctx: SignatureContext) -> dict:
