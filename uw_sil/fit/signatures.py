@@ -56,7 +56,7 @@ import numpy as np
 from .residuals import ReducedFrame, dilate, erode
 
 __all__ = ["Signature", "SignatureContext", "run_signatures", "luminance",
-           "speck_masks", "speck_density", "noise_statistics", "trimmed_sigma"]
+           "speck_masks", "speck_density", "noise_statistics", "trimmed_sigma", "median_filter"]
 
 _MAD = 1.4826
 _LUMA = np.array([0.299, 0.587, 0.114], np.float32)
@@ -609,7 +609,7 @@ def speck_masks(R: np.ndarray, S: np.ndarray, hit: np.ndarray, k: float = 5.0):
     import cv2
 
     D = (R - S).astype(np.float32)
-    hp = D - _median(D, 7)
+    hp = D - median_filter(D, 7)
     gy, gx = np.gradient(S)
     edge = dilate(np.hypot(gx, gy) > 4.0, 3)
     edge |= dilate(hit, 2) & ~erode(hit, 2)
@@ -669,7 +669,7 @@ def sig_marine_snow(ctx: SignatureContext) -> Signature:
                                                            "blob_area_px": stats["blob_area_px"]})
 
 
-def _median(img, k):
+def median_filter(img, k):
     import cv2
 
     lo, hi = float(img.min()), float(img.max())
