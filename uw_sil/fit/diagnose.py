@@ -225,7 +225,10 @@ class Diagnosis:
     figures: dict = field(default_factory=dict)    # data for the report (not serialized)
 
     def to_json(self) -> dict:
-        return {
+        """The documented JSON document (numpy numbers converted; non-finite numbers become null)."""
+        from .signatures import jsonable
+
+        return jsonable({
             "schema_version": SCHEMA_VERSION,
             "verdict": self.verdict,
             "candidates": self.candidates,
@@ -238,7 +241,7 @@ class Diagnosis:
             "frames": self.frames,
             "timing": self.timing,
             "source": self.source,
-        }
+        })
 
     def summary_lines(self) -> list:
         lines = []

@@ -38,7 +38,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from .signatures import trimmed_sigma
+from .signatures import jsonable, trimmed_sigma
 
 __all__ = ["load_images", "diagnose_images", "IMAGE_EXTENSIONS", "NOT_JUDGED"]
 
@@ -333,7 +333,7 @@ def diagnose_images(src, image_topic: str = "/camera/image_raw", k: int = 12,
         regions.append({"kind": "frame", "name": r["frame"], "rms": 0.0, "share": 0.0,
                         "corner_falloff": r["corner_falloff"], "gradient": r["gradient"],
                         "smooth_share": r["smooth_share"]})
-    return {
+    return jsonable({
         "schema_version": 1, "mode": "images",
         "verdict": verdict, "candidates": [],
         "base": {"theta_train": None, "theta_heldout": None, "params": {}},
@@ -344,4 +344,4 @@ def diagnose_images(src, image_topic: str = "/camera/image_raw", k: int = 12,
         "measurements": {"falloff": fall, "noise": noise, "particles": parts, "response": resp},
         "frames": [{"name": n, "width": int(i.shape[1]), "height": int(i.shape[0])} for n, i in frames],
         "sequence": bool(sequence), "source": str(src), "summary": summary,
-    }
+    })

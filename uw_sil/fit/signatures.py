@@ -55,7 +55,7 @@ import numpy as np
 
 from .residuals import ReducedFrame, dilate, erode
 
-__all__ = ["Signature", "SignatureContext", "run_signatures", "luminance",
+__all__ = ["Signature", "SignatureContext", "run_signatures", "luminance", "jsonable",
            "speck_masks", "speck_density", "noise_statistics", "trimmed_sigma", "median_filter"]
 
 _MAD = 1.4826
@@ -80,16 +80,16 @@ class Signature:
 
     def to_dict(self) -> dict:
         return {"effect": self.effect, "score": float(self.score), "judged": self.judged, "reason": self.reason,
-                "stats": _jsonable(self.stats), "hint": _jsonable(self.hint)}
+                "stats": jsonable(self.stats), "hint": jsonable(self.hint)}
 
 
-def _jsonable(v):
+def jsonable(v):
     if isinstance(v, dict):
-        return {str(k): _jsonable(x) for k, x in v.items()}
+        return {str(k): jsonable(x) for k, x in v.items()}
     if isinstance(v, (list, tuple)):
-        return [_jsonable(x) for x in v]
+        return [jsonable(x) for x in v]
     if isinstance(v, np.ndarray):
-        return _jsonable(v.tolist())
+        return jsonable(v.tolist())
     if isinstance(v, (np.floating, float)):
         return float(v) if math.isfinite(float(v)) else None
     if isinstance(v, (np.integer,)):
