@@ -2,7 +2,6 @@
 effect each (160x120, 6 frames) must be named; an effect-free control must give no verdict; the JSON
 follows its schema; the command's exit codes."""
 import json
-import os
 
 import numpy as np
 import pytest
@@ -85,7 +84,6 @@ def test_params_yaml_and_report(diagnoses):
     assert p["vignetting.k1"] < -0.2                  # the strong preset darkens the corners to ~40 %
     for k in ("a_r", "b_g", "rho_f", "fog_mode", "noise_sigma"):
         assert k in p
-    from uw_sil.sim.effects import get_effect
     from uw_sil.sim.model import flat_to_effect_params
 
     assert set(flat_to_effect_params(p)) == {"vignetting"}      # what sim_camera reads back

@@ -10,7 +10,7 @@
     uw-sil features --bag trial.mcap --params fit.yaml [--frames I,J] [--csv table.csv] [--report DIR]
     uw-sil diagnose --bag trial.mcap [--frames K] [--json out.json] [--report DIR] [--params-out fit.yaml]
     uw-sil diagnose --images DIR_OR_BAG [--image-topic T] [--json out.json]   # footage without a scene model
-    uw-sil demo [--out-dir out]          # synth -> contact sheet -> fit -> enhance -> features -> report
+    uw-sil demo [--out-dir out]          # synth -> contact sheet -> fit -> enhance -> features -> report -> diagnose
 
 BAG SOURCE (commands reading bags): [--image-topic T] [--info-topic T | --camera-info cam.yaml]
            [--pose-from topic:/panel/pose | tf:CAMERA_FRAME:PANEL_FRAME | markers] [--refine-pose none|ecc]
@@ -573,18 +573,16 @@ def cmd_demo(args) -> int:
     cmd_features(build_parser().parse_args(["features", "--bag", str(bag), "--params", str(out / "fit.yaml"),
                                             "--csv", str(out / "features.csv"), "--report", str(out / "report")]))
     if args.diagnose:
-        # Model discrepancy: a second dive lit by vehicle lamps the simulator leaves out (concealed: the
-        # effect goes only to the truth sidecar); the diagnosis must find it, model it and show the
-        # held-out fit improve.
-        dive = out / "lamps.mcap"
-        cmd_synth(build_parser().parse_args(["synth", "--out", str(dive), "--frames", "8", "--seed", str(args.seed + 1),
-                                             "--force", "--effects", "artificial_light=strong"]))
-        cmd_diagnose(build_parser().parse_args(["diagnose", "--bag", str(dive), "--json", str(out / "diagnosis.json"),
-                                                "--report", str(out / "diagnosis"),
-                                                "--params-out", str(out / "diagnosis.yaml"),
-                                                "--seed", str(args.seed)]))
+        # a second trial with physics the base model lacks (vehicle lamps, concealed: only the truth sidecar
+        # says so): the diagnosis must find it, model it and show held-out θ improving
+        hidden = out / "concealed.mcap"
+        cmd_synth(build_parser().parse_args(["synth", "--out", str(hidden), "--frames", "8", "--seed",
+                                             str(args.seed), "--force", "--effects", args.concealed]))
+        cmd_diagnose(build_parser().parse_args(["diagnose", "--bag", str(hidden), "--json", str(out / "diagnose.json"),
+                                                "--params-out", str(out / "diagnose.yaml"),
+                                                "--report", str(out / "diagnose"), "--seed", str(args.seed)]))
     print(f"demo done in {time.perf_counter() - t0:.0f} s: open {out / 'report' / 'index.html'}"
-          + (f" and {out / 'diagnosis' / 'index.html'}" if args.diagnose else ""))
+          + (f" and {out / 'diagnose' / 'index.html'}" if args.diagnose else ""))
     return 0
 
 
@@ -757,9 +755,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="main fit (default CMA-ES; --compare also runs the other, the paper's PSO)")
     d.add_argument("--compare", action="store_true", default=True)
     d.add_argument("--no-compare", dest="compare", action="store_false")
-    d.add_argument("--no-diagnose", dest="diagnose", action="store_false",
-                   help="skip the model-discrepancy part (a second dive with concealed vehicle lamps, diagnosed)")
-    d.set_defaults(func=cmd_demo, diagnose=True)
+    d.add_argument("--diagnose", action="store_true", default=True,
+                   help="also synthesize a trial with a concealed effect and diagnose it (default)")
+    d.add_argument("--no-diagnose", dest="diagnose", action="store_false")
+    d.add_argument("--concealed", default="artificial_light=mild",
+                   help="effects concealed in the diagnosis trial (uw-sil synth --effects syntax)")
+    d.set_defaults(func=cmd_demo)
 
     b = sub.add_parser("batch", help="a campaign: fit (and diagnose, enhance) every dive of a folder of bags",
                        description="Runs the per-dive commands over many bags, on this machine (a process pool) "

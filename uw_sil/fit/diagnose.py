@@ -41,7 +41,6 @@ import math
 import threading
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
 from types import SimpleNamespace
 from typing import Callable, Optional
 
@@ -49,7 +48,7 @@ import numpy as np
 
 from ..sim.params import RGB_NAMES
 from .diagfit import BASE_SIGMA0, BaseModel, FrameObjective, fit_model, noise_sigmas
-from .residuals import (LABEL_PANEL, DiagFrame, ReducedFrame, base_sim, load_frames, locate, reduce_frame,
+from .residuals import (LABEL_PANEL, ReducedFrame, base_sim, load_frames, locate, reduce_frame,
                         reduction_factor, residual_maps, split_frames)
 
 __all__ = ["SCHEMA_VERSION", "Diagnosis", "diagnose_frames", "diagnose_bag", "EffectModel", "FIT_SETTINGS",
@@ -105,7 +104,7 @@ class EffectModel:
     def __init__(self, rframes, effects, values: Optional[dict] = None, free: Optional[dict] = None,
                  fog: str = "exp2", seed: int = 0):
         from ..sim.effects import EFFECT_ORDER, get_effect
-        from ..sim.model import Geometry, UnderwaterModel
+        from ..sim.model import UnderwaterModel
         from ..sim.params import UnderwaterParams
 
         self.rframes = list(rframes)
@@ -226,7 +225,10 @@ class Diagnosis:
     figures: dict = field(default_factory=dict)    # data for the report (not serialized)
 
     def to_json(self) -> dict:
-        return {
+        """The documented JSON document (numpy numbers converted; non-finite numbers become null)."""
+        from .signatures import jsonable
+
+        return jsonable({
             "schema_version": SCHEMA_VERSION,
             "verdict": self.verdict,
             "candidates": self.candidates,
@@ -239,7 +241,7 @@ class Diagnosis:
             "frames": self.frames,
             "timing": self.timing,
             "source": self.source,
-        }
+        })
 
     def summary_lines(self) -> list:
         lines = []
@@ -325,6 +327,20 @@ def _effect_flat(params: dict, names) -> dict:
     return out
 
 
+def _full_res_noise(frames) -> list:
+    """Camera noise (grey levels, per channel) of each frame at its own resolution, from its open water."""
+    from ..sim.noise import estimate_noise_sigma
+
+    out = []
+    for f in frames:
+        water = ~np.isfinite(f.render.range)
+        try:
+            out.append([float(v) for v in estimate_noise_sigma(f.image, water)])
+        except ValueError:
+            out.append([float(v) for v in estimate_noise_sigma(f.image)])
+    return out
+
+
 def _bootstrap_se(d: np.ndarray, n: int = 2000, seed: int = 0) -> float:
     """Bootstrap standard error of the mean of per-frame values (frames resampled with replacement)."""
     d = np.asarray(d, float)
@@ -371,10 +387,16 @@ def _explain(effect: str, params: dict, b_held: float, c_held: float, sig, stati
                 f"{b_held:.3f} -> {c_held:.3f}")
     st = sig.stats if sig is not None else {}
     if effect == "artificial_light":
-        side = "right" if e.get("offset_x", 0) >= 0 else "left"
-        two = e.get("balance", 0) > 0.05
-        lamp = (f"two lamps about {abs(e.get('offset_x', 0)):.2f} m left and right of the camera"
-                if two else f"a lamp about {abs(e.get('offset_x', 0)):.2f} m {side} of the camera")
+        side, other = ("right", "left") if e.get("offset_x", 0) >= 0 else ("left", "right")
+        bal = e.get("balance", 0)
+        off = abs(e.get("offset_x", 0))
+        if bal > 0.35:
+            lamp = f"two lamps about {off:.2f} m left and right of the camera"
+        elif bal > 0.05:
+            lamp = (f"a lamp about {off:.2f} m {side} of the camera (and a weaker one, {100 * bal:.0f} % of the "
+                    f"light, {other})")
+        else:
+            lamp = f"a lamp about {off:.2f} m {side} of the camera"
         return (f"the recording is lit by vehicle lamps the simulation lacks: brightness on the panel falls "
                 f"~1/r² from {lamp} ({100 * (1 - e.get('fill', 1)):.0f} % of the light from the lamps, beam half "
                 f"width {math.degrees(e.get('half_angle', 0)):.0f}°); {gain}")
@@ -686,13 +708,14 @@ def diagnose_frames(frames: list, fog: str = "exp2", seed: int = 0, max_candidat
                         "explained_share": (prox[e].explained if e in prox else None)} for e in sigs},
         noise={"optimizer_heldout_theta": opt_noise, "margin": margin_for(np.zeros(len(held_f))),
                "camera_noise_dn": [list(map(float, n)) for n in nall],
+               "camera_noise_dn_full_resolution": _full_res_noise(frames),
                "base_refit_theta_heldout": float(base2_held_pf.mean())},
         frames=[{"index": f.index, "role": f.role, "range_m": f.range_median, "coverage": f.coverage}
                 for f in sorted(frames, key=lambda f: f.index)],
         timing=timing, final_params=final_params, not_judged=not_judged, source=source,
         figures={"rframes": rall, "sims": sims, "res": res, "sigs": sigs, "prox": prox, "fits": fits,
                  "base_x": base_fit.x, "fog": fog, "held": [R_hi[id(f)] for f in held_f],
-                 "base_held_pf": base_held_pf, "final_key": final_key})
+                 "base_held_pf": ref_held_pf, "final_key": final_key})
     return diag
 
 
@@ -841,7 +864,6 @@ def _noise_refit(fit_f, held_f, base_x, sig, fog, seed, ref_held_pf, base_theta_
     rfit, Sfit, real_fit, hfit = prep(fit_f)
     rheld, Sheld, real_held, hheld = prep(held_f)
     model = EffectModel(rfit, ["sensor_noise"], fog=fog, seed=seed)
-    names = model.free["sensor_noise"]
     lo, hi = model.bounds()
     h = (sig.hint if sig is not None else {}) or {}
     iw = np.nanmedian([r["i_water"] for r in real_fit if r]) if any(real_fit) else 60.0
@@ -987,7 +1009,8 @@ def write_diagnosis_yaml(path, diag: Diagnosis, node_name: str = "/**", fog: str
 
     p = dict(diag.final_params["base"])
     p["fog_mode"] = fog
-    p["noise_sigma"] = float(np.mean(diag.noise["camera_noise_dn"])) if diag.noise.get("camera_noise_dn") else 0.0
+    full = diag.noise.get("camera_noise_dn_full_resolution")
+    p["noise_sigma"] = float(np.mean(full)) if full else 0.0
     eff = diag.final.get("effects", [])
     if eff:
         p["effects"] = ",".join(eff)

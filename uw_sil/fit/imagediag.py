@@ -12,8 +12,9 @@ themselves can be judged:
   Poisson-Gaussian fit, Foi et al. 2008), spatial correlation (lag-1 vs lag-3 differences) and 8x8
   block artefacts of JPEG/MJPEG coding;
 - ``marine_snow``: sparse small bright outliers; with a sequence, whether they persist between frames;
-- ``camera_response``: black-level pedestal (the darkest pixels of each channel stay well above 0) and
-  a white-balance cast (grey-world gains far from 1).
+- ``camera_response``: black-level pedestal (the darkest pixels of *every* channel stay above 20 grey
+  levels); a white-balance cast (grey-world gains) is reported but not counted: the water's attenuation
+  casts colour too.
 
 Not judged (they need the scene model, the range or the poses): ``forward_scatter`` (the sharp
 reference is unknown), ``backscatter_coefficient`` (needs range), ``unmodeled_geometry`` (needs the
@@ -37,7 +38,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from .signatures import trimmed_sigma
+from .signatures import jsonable, trimmed_sigma
 
 __all__ = ["load_images", "diagnose_images", "IMAGE_EXTENSIONS", "NOT_JUDGED"]
 
@@ -184,28 +185,27 @@ def _noise(frames) -> dict:
 
 
 def _particles(frames) -> dict:
+    """Small bright (and dark) outliers against the frame's own 7x7 median (what a particle smaller than the
+    window leaves), counted away from the edges of larger structures (:func:`speck_masks` with the
+    median-filtered frame as the reference)."""
     import cv2
+
+    from .signatures import median_filter, speck_masks
 
     rows = []
     prev = None
     for name, img in frames:
         Y = _lum(img)
-        med = cv2.medianBlur(np.clip(Y, 0, 255).astype(np.uint8), 7).astype(np.float32)
-        hp = Y - med
-        scale = _MAD * np.median(np.abs(hp)) + 0.5
-        g = cv2.morphologyEx(Y, cv2.MORPH_GRADIENT, np.ones((3, 3), np.uint8))
-        busy = cv2.blur(g, (9, 9)) > np.quantile(cv2.blur(g, (9, 9)), 0.6)     # textured parts: skip
-        pos = (hp > 6 * scale) & ~busy
-        neg = (hp < -6 * scale) & ~busy
-        npos, _, st, _ = cv2.connectedComponentsWithStats(pos.astype(np.uint8), 8)
-        nneg = cv2.connectedComponentsWithStats(neg.astype(np.uint8), 8)[0]
-        small = int(np.sum(st[1:, cv2.CC_STAT_AREA] <= 30)) if npos > 1 else 0
-        mp = max((~busy).sum(), 1) / 1e6
+        S = median_filter(Y, 7)
+        pos, neg, ok = speck_masks(Y, S, np.zeros(Y.shape, bool))
+        npos = cv2.connectedComponentsWithStats(pos.astype(np.uint8), 8)[0] - 1
+        nneg = cv2.connectedComponentsWithStats(neg.astype(np.uint8), 8)[0] - 1
+        mp = max(ok.sum(), 1) / 1e6
         persist = None
         if prev is not None and prev.shape == pos.shape and pos.sum() and prev.sum():
             persist = float((pos & cv2.dilate(prev.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)).sum()
                             / pos.sum())
-        rows.append({"frame": name, "positive_per_mpx": small / mp, "negative_per_mpx": (nneg - 1) / mp,
+        rows.append({"frame": name, "positive_per_mpx": npos / mp, "negative_per_mpx": nneg / mp,
                      "persistence": persist})
         prev = pos
     return {"frames": rows}
@@ -294,10 +294,9 @@ def diagnose_images(src, image_topic: str = "/camera/image_raw", k: int = 12,
     if rr:
         black = np.median([r["black_dn"] for r in rr], axis=0)
         gains = np.median([r["grey_world_gains"] for r in rr], axis=0)
-        cast = float(np.max(np.abs(np.log(gains))))
         # a pedestal lifts the darkest pixels of *every* channel; a colour cast alone is what the water's
         # attenuation does too, so it is reported but not counted as camera response
-        score_c = float(np.min(black)) / 12.0
+        score_c = float(np.min(black)) / 20.0
         signatures["camera_response"] = {"score": score_c, "black_level_dn": black.tolist(),
                                          "grey_world_gains": gains.tolist(),
                                          "note": "a colour cast is also what the water's attenuation gives: "
@@ -334,7 +333,7 @@ def diagnose_images(src, image_topic: str = "/camera/image_raw", k: int = 12,
         regions.append({"kind": "frame", "name": r["frame"], "rms": 0.0, "share": 0.0,
                         "corner_falloff": r["corner_falloff"], "gradient": r["gradient"],
                         "smooth_share": r["smooth_share"]})
-    return {
+    return jsonable({
         "schema_version": 1, "mode": "images",
         "verdict": verdict, "candidates": [],
         "base": {"theta_train": None, "theta_heldout": None, "params": {}},
@@ -345,4 +344,4 @@ def diagnose_images(src, image_topic: str = "/camera/image_raw", k: int = 12,
         "measurements": {"falloff": fall, "noise": noise, "particles": parts, "response": resp},
         "frames": [{"name": n, "width": int(i.shape[1]), "height": int(i.shape[0])} for n, i in frames],
         "sequence": bool(sequence), "source": str(src), "summary": summary,
-    }
+    })

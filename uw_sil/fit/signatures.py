@@ -53,13 +53,10 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from .residuals import LABEL_PANEL, ReducedFrame, dilate, erode
+from .residuals import ReducedFrame, dilate, erode
 
-__all__ = ["Signature", "SignatureContext", "run_signatures", "SIGNATURE_TESTS", "EFFECT_NAMES", "luminance",
-           "speck_masks", "speck_density", "noise_statistics", "trimmed_sigma"]
-
-EFFECT_NAMES = ("artificial_light", "forward_scatter", "backscatter_coefficient", "vignetting", "sensor_noise",
-                "marine_snow", "camera_response", "unmodeled_geometry", "pose_error")
+__all__ = ["Signature", "SignatureContext", "run_signatures", "luminance", "jsonable",
+           "speck_masks", "speck_density", "noise_statistics", "trimmed_sigma", "median_filter"]
 
 _MAD = 1.4826
 _LUMA = np.array([0.299, 0.587, 0.114], np.float32)
@@ -83,16 +80,16 @@ class Signature:
 
     def to_dict(self) -> dict:
         return {"effect": self.effect, "score": float(self.score), "judged": self.judged, "reason": self.reason,
-                "stats": _jsonable(self.stats), "hint": _jsonable(self.hint)}
+                "stats": jsonable(self.stats), "hint": jsonable(self.hint)}
 
 
-def _jsonable(v):
+def jsonable(v):
     if isinstance(v, dict):
-        return {str(k): _jsonable(x) for k, x in v.items()}
+        return {str(k): jsonable(x) for k, x in v.items()}
     if isinstance(v, (list, tuple)):
-        return [_jsonable(x) for x in v]
+        return [jsonable(x) for x in v]
     if isinstance(v, np.ndarray):
-        return _jsonable(v.tolist())
+        return jsonable(v.tolist())
     if isinstance(v, (np.floating, float)):
         return float(v) if math.isfinite(float(v)) else None
     if isinstance(v, (np.integer,)):
@@ -196,7 +193,6 @@ def sig_vignetting(ctx: SignatureContext) -> Signature:
     """
     rows = {c: [] for c in range(3)}
     per_frame = []
-    nfr = len(ctx.rframes)
     rho_c = 0.0
     prof = []
     for k, rf in enumerate(ctx.rframes):
@@ -241,7 +237,7 @@ def sig_vignetting(ctx: SignatureContext) -> Signature:
     chroma_spread = float(falloff.max() - falloff.min())
     frame_spread = float(np.std(per_frame)) if len(per_frame) > 1 else 0.0
     # object agreement: regress the object's log-ratio (per-frame offsets) on the water radial profile
-    xs, ys, fr = [], [], []
+    xs, ys = [], []
     for k, rf in enumerate(ctx.rframes):
         m = rf.obj
         if m.sum() < 50:
@@ -613,7 +609,7 @@ def speck_masks(R: np.ndarray, S: np.ndarray, hit: np.ndarray, k: float = 5.0):
     import cv2
 
     D = (R - S).astype(np.float32)
-    hp = D - _median(D, 7)
+    hp = D - median_filter(D, 7)
     gy, gx = np.gradient(S)
     edge = dilate(np.hypot(gx, gy) > 4.0, 3)
     edge |= dilate(hit, 2) & ~erode(hit, 2)
@@ -673,7 +669,7 @@ def sig_marine_snow(ctx: SignatureContext) -> Signature:
                                                            "blob_area_px": stats["blob_area_px"]})
 
 
-def _median(img, k):
+def median_filter(img, k):
     import cv2
 
     lo, hi = float(img.min()), float(img.max())
@@ -827,9 +823,6 @@ def sig_blur_and_shift(ctx: SignatureContext) -> tuple:
                      {"spectra": spectra, "blur": (ranges.tolist(), sp.tolist())})
     return blur, pose
 
-
-SIGNATURE_TESTS = ("vignetting", "artificial_light", "backscatter_coefficient", "camera_response",
-                   "unmodeled_geometry", "sensor_noise", "marine_snow", "blur_shift")
 
 
 def run_signatures(ctx: SignatureContext) -> dict:
