@@ -3,6 +3,10 @@
 Each dive is a synthetic 320x240 trial fitted with CMA-ES (K = 2 frames, 15 iterations, no report), the
 same work `uw-sil batch` does per dive. Prints the wall time of each configuration and, last, the speed-up
 of 2 workers over 1 on the local pool. Also the peak RSS per worker process (what to plan per dive).
+The cores are shared, not oversubscribed: 1 worker fits with 2 θ threads, 2 workers with 1 each
+(``threads_per_dive``) — a single dive is already parallel, so the speed-up measures what running
+dives side by side adds on top of that. A run with 1 worker and 1 thread per dive shows how the
+processes themselves scale.
 
     python bench/bench_batch.py [--dives 4] [--max-iter 15]
 """
@@ -21,8 +25,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from uw_sil.campaign import find_dives, run_campaign  # noqa: E402
 
 
-def _peak_rss_mb(out_root: Path) -> float:
-
+def _peak_rss_mb() -> float:
+    """Largest resident set of any finished child process (the pool's workers), in MB."""
     import resource
 
     return resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
@@ -43,9 +47,14 @@ def main():
         dives = find_dives(str(tmp / "dives" / "*" / "*.mcap"))
         opts = {"frames": 2, "stride": 2, "optimizer": "cmaes", "max_iter": a.max_iter, "seed": 0, "report": False}
         times = {}
+        t0 = time.perf_counter()
+        run_campaign(dives, tmp / "local1t", ["fit"], opts, jobs=1, threads_per_dive=1)
+        times[("local", "1t")] = time.perf_counter() - t0
+        print(f"local pool, 1 worker, 1 thread per dive: {times[('local', '1t')]:.1f} s for {len(dives)} dives",
+              flush=True)
         for jobs in (1, 2):
             t0 = time.perf_counter()
-            rows = run_campaign(dives, tmp / f"local{jobs}", ["fit"], opts, jobs=jobs)
+            rows = run_campaign(dives, tmp / f"local{jobs}", ["fit"], opts, jobs=jobs, threads_per_dive=max(1, (os.cpu_count() or 1) // jobs))
             times[("local", jobs)] = time.perf_counter() - t0
             assert all(r["status"] == "ok" for r in rows), rows
             print(f"local pool, {jobs} worker(s): {times[('local', jobs)]:.1f} s for {len(dives)} dives", flush=True)
@@ -59,7 +68,8 @@ def main():
                                               dashboard_address=None, silence_logs=40) as cl, \
                         distributed.Client(cl) as client:
                     t0 = time.perf_counter()
-                    rows = run_campaign(dives, tmp / f"dask{jobs}", ["fit"], opts, executor=client.get_executor())
+                    rows = run_campaign(dives, tmp / f"dask{jobs}", ["fit"], opts, executor=client.get_executor(),
+                                        threads_per_dive=max(1, (os.cpu_count() or 1) // jobs))
                     times[("dask", jobs)] = time.perf_counter() - t0
                 assert all(r["status"] == "ok" for r in rows), rows
                 print(f"dask LocalCluster, {jobs} worker(s): {times[('dask', jobs)]:.1f} s", flush=True)
@@ -68,6 +78,7 @@ def main():
         extra = ""
         if ("dask", 2) in times:
             extra = f" dask_speedup_2w={times[('dask', 1)] / times[('dask', 2)]:.2f}"
+        print(f"2 workers against 1 at one thread per dive each: {times[('local', '1t')] / times[('local', 2)]:.2f}x")
         print(f"batch: speedup_2w={sp:.2f}{extra} dives={len(dives)} cores={os.cpu_count()}")
 
 

@@ -82,7 +82,9 @@ def test_dask_gives_the_same_table_and_a_rerun_skips(dives, local_run, tmp_path)
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cl, \
             distributed.Client(cl) as client:
         dask_rows = run_campaign(found, tmp_path / "dask", ["fit"], OPTIONS, executor=client.get_executor())
-    assert _stable(dask_rows) == _stable(local)
+    assert _stable(dask_rows) == _stable(local)          # 2 θ threads per dive there, 1 in the local pool
+    # Dask's nanny sets MALLOC_TRIM_THRESHOLD_ (fits 2.3x slower): the worker raised glibc's thresholds
+    assert "MALLOC_TRIM_THRESHOLD_ is set" in (tmp_path / "dask" / "dive1" / "log.txt").read_text()
 
     again = run_campaign(found, res, ["fit"], OPTIONS, jobs=1)
     assert all(r["skipped"] for r in again)                  # the broken dive too: it failed with a reason
@@ -98,3 +100,16 @@ def test_bad_requests_are_refused(tmp_path):
         from uw_sil.campaign import make_executor
 
         make_executor("kubernetes://x")
+
+
+def test_thread_budget_of_a_worker(monkeypatch):
+    from uw_sil._shared.process import ENV, default_threads
+
+    monkeypatch.delenv(ENV, raising=False)
+    assert default_threads() == max(1, min(2, os.cpu_count() or 1))
+    assert default_threads(3) == 3 and default_threads(0) == 1
+    monkeypatch.setenv(ENV, "1")
+    assert default_threads() == 1
+    monkeypatch.setenv(ENV, "two")
+    with pytest.raises(ValueError, match="UW_SIL_THREADS must be a whole number"):
+        default_threads()

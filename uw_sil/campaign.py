@@ -19,6 +19,9 @@ or RPC of our own.
 - Resumable: a dive with a ``row.json`` for the same steps and options is skipped, whether it
   succeeded or failed with a reason (a bad bag fails again); ``retry_failed=True`` redoes the failed
   ones, ``force=True`` all. A dive whose worker died wrote no row and is run again.
+- Cores are shared, not oversubscribed: one dive's fit already evaluates θ on up to two threads, so
+  a local pool of ``jobs`` workers gives each dive ``cores // jobs`` threads (``UW_SIL_THREADS`` in the
+  worker, :mod:`uw_sil._shared.process`); on a cluster ``threads_per_dive`` says it.
 - A failing dive (bad bag, no panel visible, ...) never stops the campaign: it becomes a row with
   ``status = 'error'`` and the command's one-line reason.
 """
@@ -140,13 +143,21 @@ def _row(dive: Dive, steps, out: Path) -> dict:
 
 
 def run_dive(dive: Dive, out_root: str, steps: Sequence[str], options: dict, force: bool = False,
-             retry_failed: bool = False) -> dict:
+             retry_failed: bool = False, threads: Optional[int] = None) -> dict:
     """Run the steps of one dive (in a worker process) and return its row; never raises for a dive's fault.
 
     Output of the commands goes to ``<out_root>/<dive>/log.txt``; the row is written last to
-    ``row.json`` (atomically), which marks the dive complete for a later resume.
+    ``row.json`` (atomically), which marks the dive complete for a later resume. ``threads`` sets this
+    worker process's thread budget (``UW_SIL_THREADS``); results do not depend on it.
     """
     from . import cli
+    from ._shared.process import ENV, prefer_array_malloc
+
+    if threads is not None:
+        os.environ[ENV] = str(max(1, int(threads)))
+    # A Dask nanny sets MALLOC_TRIM_THRESHOLD_, which made fits 2.3x slower (uw_sil._shared.process).
+    malloc_note = ("MALLOC_TRIM_THRESHOLD_ is set in this worker: raised glibc's mmap/trim thresholds\n"
+                   if "MALLOC_TRIM_THRESHOLD_" in os.environ and prefer_array_malloc() else "")
 
     out = Path(out_root) / dive.name
     key = _options_key(steps, options)
@@ -157,7 +168,8 @@ def run_dive(dive: Dive, out_root: str, steps: Sequence[str], options: dict, for
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     row = {"dive": dive.name, "bag": dive.bag, "status": "ok", "error": "", "steps": ",".join(steps)}
-    log = io.StringIO()
+    log = io.StringIO(malloc_note)
+    log.seek(0, io.SEEK_END)
     for step in steps:
         argv = _step_argv(step, dive.bag, out, options)
         print(f"$ uw-sil {' '.join(argv)}", file=log)
@@ -207,10 +219,13 @@ def make_executor(spec: str = "local", jobs: Optional[int] = None):
 
 def run_campaign(dives: Sequence[Dive], out_root, steps: Sequence[str] = ("fit",), options: Optional[dict] = None,
                  executor: Optional[Executor] = None, jobs: Optional[int] = None, force: bool = False,
-                 retry_failed: bool = False, progress: Optional[Callable[[int, int, dict], None]] = None) -> list[dict]:
+                 retry_failed: bool = False, progress: Optional[Callable[[int, int, dict], None]] = None,
+                 threads_per_dive: Optional[int] = None) -> list[dict]:
     """Run every dive on ``executor`` (default: a local spawn process pool), write the table, return the rows.
 
-    ``progress(done, total, row)`` is called in this process as each dive finishes.
+    ``progress(done, total, row)`` is called in this process as each dive finishes. ``threads_per_dive``:
+    threads each dive may use (default: the cores divided among the local pool's workers; with a given
+    ``executor``, the worker's own default).
     """
     steps = tuple(steps)
     unknown = [s for s in steps if s not in STEPS]
@@ -224,9 +239,12 @@ def run_campaign(dives: Sequence[Dive], out_root, steps: Sequence[str] = ("fit",
     options = dict(options or {})
     own, close = (None, None) if executor is not None else make_executor("local", jobs)
     ex = executor or own
+    if threads_per_dive is None and executor is None:
+        cores = os.cpu_count() or 1
+        threads_per_dive = max(1, cores // max(1, min(jobs or cores, len(dives) or 1)))
     rows = {}
     try:
-        futures = {ex.submit(run_dive, d, str(out_root), steps, options, force, retry_failed): d for d in dives}
+        futures = {ex.submit(run_dive, d, str(out_root), steps, options, force, retry_failed, threads_per_dive): d for d in dives}
         for n, fut in enumerate(as_completed(futures), 1):
             d = futures[fut]
             try:

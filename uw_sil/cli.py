@@ -610,7 +610,8 @@ def cmd_batch(args) -> int:
 
     try:
         rows = run_campaign(dives, args.out, steps, options, executor=executor, jobs=args.jobs, force=args.force,
-                            retry_failed=args.retry_failed, progress=progress)
+                            retry_failed=args.retry_failed, progress=progress,
+                            threads_per_dive=args.threads_per_dive)
     finally:
         bar.close()
         if close:
@@ -773,6 +774,9 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--executor", default="local",
                    help="'local' (process pool, spawn) or dask://HOST:PORT (a Dask scheduler; uw-sil[dask])")
     b.add_argument("--jobs", type=int, default=None, help="local workers (default: number of cores)")
+    b.add_argument("--threads-per-dive", type=int, default=None,
+                   help="threads one dive's fit may use (default: cores / jobs on the local pool; "
+                        "the worker's default, up to 2, on a cluster)")
     b.add_argument("--force", action="store_true", help="redo every dive, also those already done")
     b.add_argument("--retry-failed", action="store_true", help="redo the dives that failed last time")
     b.add_argument("--frames", type=int, default=None, help="K frames per fit (default: uw-sil fit's)")

@@ -18,7 +18,6 @@ References
 from __future__ import annotations
 
 import json
-import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -27,6 +26,7 @@ from typing import Callable, Iterable, Optional
 import numpy as np
 
 from .._shared.fileio import write_text_atomic
+from .._shared.process import default_threads
 from ..sim.params import ParamSpace, UnderwaterParams
 
 __all__ = ["FitFrame", "FrameSelection", "FrameSelector", "select_frames", "BackwardObjective", "FitResult", "fit_frames",
@@ -232,8 +232,8 @@ class BackwardObjective:
         Without it FSIMc compares sensor noise with a noise-free render and prefers wrong
         parameters (see :mod:`uw_sil.sim.noise`).
     workers : int, optional
-        Threads evaluating parts of a batch (default: up to 2, the cores here). Results do not depend
-        on it.
+        Threads evaluating parts of a batch (default: :func:`uw_sil._shared.process.default_threads`).
+        Results do not depend on it.
     """
 
     def __init__(self, frames: list, space: ParamSpace, channels: str = "HSV", fog: str = "exp2",
@@ -253,7 +253,7 @@ class BackwardObjective:
         self.hist_pixels = hist_pixels
         # One set of θ references per worker thread (they reuse work buffers, so they are not shared).
         # FFTs, exp and most array work release the GIL: two threads on two cores give ~1.6-1.8x.
-        self.workers = max(1, int(workers if workers is not None else min(2, os.cpu_count() or 1)))
+        self.workers = default_threads(workers)
         self._refs = [[ThetaReference(f.image, channels=channels, hist_mask=_hist_masks(f, hist_pixels))
                        for f in frames] for _ in range(self.workers)]
         self.references = self._refs[0]

@@ -16,13 +16,13 @@ References
 """
 from __future__ import annotations
 
-import os
 import time
 from dataclasses import dataclass, field
 from typing import Optional, Sequence
 
 import numpy as np
 
+from .._shared.process import default_threads
 from ..sim.params import DEFAULT_RGB_BOUNDS, RGB_NAMES
 from .residuals import LABEL_PANEL, ReducedFrame, base_sim
 
@@ -98,7 +98,7 @@ class FrameObjective:
         unless ``model.owns_noise``.
     seed : int
     workers : int, optional
-        Threads (default: up to 2).
+        Threads (default: :func:`uw_sil._shared.process.default_threads`).
     """
 
     def __init__(self, rframes, model, noise, seed: int = 0, channels: str = "HSV", batch: int = 16,
@@ -108,7 +108,7 @@ class FrameObjective:
 
         self.rframes = list(rframes)
         self.model = model
-        self.workers = max(1, int(workers if workers is not None else min(2, os.cpu_count() or 1)))
+        self.workers = default_threads(workers)
         self._refs = [[ThetaReference(rf.image, channels=channels, hist_mask=_hist_masks(rf))
                        for rf in self.rframes] for _ in range(self.workers)]
         self.noise = [None if model.owns_noise or not np.any(np.asarray(s) > 0) else
