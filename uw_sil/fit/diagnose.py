@@ -753,7 +753,8 @@ def diagnose_frames(frames: list, fog: str = "exp2", seed: int = 0, max_candidat
         timing=timing, final_params=final_params, not_judged=not_judged, source=source,
         figures={"rframes": rall, "sims": sims, "res": res, "sigs": sigs, "prox": prox, "fits": fits,
                  "base_x": base_fit.x, "fog": fog, "held": [R_hi[id(f)] for f in held_f],
-                 "base_held_pf": ref_held_pf, "final_key": final_key})
+                 "base_held_pf": ref_held_pf,
+                 "final_key": final_key if final_key in fits else (final_effects[0] if final_effects else None)})
     return diag
 
 
