@@ -276,7 +276,7 @@ def test_mild_subtle_strong_stronger(name, frames, renderer):
 def test_synth_injects_effects_recorded_only_in_truth(tmp_path, capsys):
     import json
 
-    from uw_sil.bags.reader import read_samples
+    from uw_sil.bags import read_samples
     from uw_sil.cli import build_parser, main
 
     help_text = " ".join(a.help or "" for a in build_parser()._subparsers._group_actions[0].choices["synth"]._actions)

@@ -339,7 +339,7 @@ def cmd_fit(args) -> int:
 
     methods = [args.optimizer] + ([m for m in ("pso", "cmaes") if m != args.optimizer] if args.compare else [])
     _check_option("--frames", args.frames, args.frames >= 1, ">= 1")
-    _check_option("--stride", args.stride, args.stride >= 1, ">= 1")
+    _check_option("--stride", args.stride, args.stride is None or args.stride >= 1, ">= 1")
     _check_option("--min-coverage", args.min_coverage, 0 <= args.min_coverage < 1, "in [0, 1)")
     _check_option("--max-iter", args.max_iter, args.max_iter is None or args.max_iter >= 1, ">= 1")
     sim_noise = _sim_noise(args.sim_noise)
@@ -581,7 +581,8 @@ def cmd_demo(args) -> int:
         cmd_diagnose(build_parser().parse_args(["diagnose", "--bag", str(hidden), "--json", str(out / "diagnose.json"),
                                                 "--params-out", str(out / "diagnose.yaml"),
                                                 "--report", str(out / "diagnose"), "--seed", str(args.seed)]))
-    print(f"demo done in {time.perf_counter() - t0:.0f} s: open {out / 'report' / 'index.html'}")
+    print(f"demo done in {time.perf_counter() - t0:.0f} s: open {out / 'report' / 'index.html'}"
+          + (f" and {out / 'diagnose' / 'index.html'}" if args.diagnose else ""))
     return 0
 
 
@@ -673,7 +674,8 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--bag", required=True)
     _add_bag_source_args(f)
     f.add_argument("--frames", type=int, default=3, help="K: frames to fit (default 3)")
-    f.add_argument("--stride", type=int, default=1, help="use every n-th frame (more ranges in the K frames)")
+    f.add_argument("--stride", type=int, default=None,
+                   help="use every n-th frame (default: spread the K frames over the bag's first 200 frames)")
     f.add_argument("--min-coverage", type=float, default=0.02, help="skip frames where the panel covers less")
     f.add_argument("--optimizer", choices=["pso", "cmaes"], default="pso")
     f.add_argument("--compare", action="store_true", help="also run the other optimizer for the report")

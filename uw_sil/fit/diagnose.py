@@ -671,6 +671,14 @@ def diagnose_frames(frames: list, fog: str = "exp2", seed: int = 0, max_candidat
         st = fits[e]["statistic"]
         rank[e] = 0.4 * min(1.0, st["improvement"] / max(3 * st["margin"], 1e-9)) + 0.6 * min(1.0, scores[e] / 10.0)
     accepted.sort(key=lambda e: -rank[e])
+    if len(accepted) >= 2:
+        # the held-out frames have the last word: a lower-ranked effect that beats the leading one on them by
+        # more than its noise margin leads (a signature alone must not keep a clearly worse model)
+        held = {e: float(fits[e]["held_pf"].mean()) for e in accepted}
+        best = max(accepted, key=held.get)
+        if held[best] - held[accepted[0]] > fits[best]["margin"]:
+            accepted.remove(best)
+            accepted.insert(0, best)
     final_effects = accepted[:1]
     if len(accepted) >= 2:
         pair = accepted[:2]
