@@ -72,8 +72,8 @@ class DiagnosisError(ValueError):
 #: the resolution class of the refit ("low": ~160 px wide, the effect is smooth; "high": ~320 px) and
 #: fixed values.
 FIT_SETTINGS = {
-    "artificial_light": {"free": ("offset_x", "offset_y", "half_angle", "balance", "fill", "veil"), "res": "low",
-                         "fixed": {"toe_in": 0.0, "shape": 2.0, "power": 1.0}},
+    "artificial_light": {"free": ("offset_x", "offset_y", "toe_in", "half_angle", "shape", "balance", "fill", "veil"),
+                         "res": "low", "fixed": {"power": 1.0}},
     "forward_scatter": {"free": ("strength", "width", "tail"), "res": "high", "fixed": {}},
     "backscatter_coefficient": {"free": ("ratio_r", "ratio_g", "ratio_b", "decay"), "res": "low", "fixed": {}},
     "vignetting": {"free": ("k1", "k2", "cx", "cy"), "res": "low", "fixed": {}},
@@ -83,6 +83,19 @@ FIT_SETTINGS = {
     "unmodeled_geometry": {"free": ("floor_y", "tilt", "albedo", "contrast"), "res": "low", "fixed": {}},
     "pose_error": {"free": ("tx", "ty", "tz", "rx", "ry", "rz"), "res": "high",
                    "fixed": {"jitter_t": 0.0, "jitter_r": 0.0}},
+}
+
+
+#: Alternative start configurations tried before the least-squares start of a refit (physical extremes of
+#: effects whose least-squares landscape has several basins).
+ALT_STARTS = {
+    "unmodeled_geometry": [{"floor_y": -0.8, "albedo": 1.0, "contrast": 1.0},
+                           {"floor_y": -2.0, "albedo": 1.0, "contrast": 0.5},
+                           {"floor_y": -4.5, "albedo": 1.3, "contrast": 0.3}],
+    "artificial_light": [{"offset_x": 0.5, "offset_y": -0.1, "toe_in": 0.2, "half_angle": 0.45, "balance": 0.5,
+                          "fill": 0.2},
+                         {"offset_x": 0.8, "offset_y": -0.3, "toe_in": 0.0, "half_angle": 0.7, "balance": 0.1,
+                          "fill": 0.3}],
 }
 
 
@@ -149,6 +162,10 @@ class EffectModel:
                 pm._prep_for([get_effect(n).from_vector(self.template[s]) for n, s in zip(pm.effect_names,
                                                                                         pm.slices)], None)
                 pm._base_prep.mask = rf.cover.astype(np.float32)
+            elif set(self.effects) == {"unmodeled_geometry"}:
+                # the seafloor only adds surfaces where the scene model shows water: the model's own pixels
+                # keep their covered fraction (area-exact silhouettes, as the base model)
+                pm._prep_for = _keep_cover(pm._prep_for, rf.cover.astype(np.float32), rf.cover > 0)
             pms.append(pm)
         return pms
 
@@ -201,6 +218,16 @@ class EffectModel:
         for n in self.effects:
             eff[n] = {p: float(ev[self.pnames.index(f"{n}.{p}")]) for p in self.values[n]}
         return {"base": {k: float(v) for k, v in zip(RGB_NAMES, base)}, "effects": eff}
+
+
+def _keep_cover(prep_for, cover, orig_hit):
+    """Wrap PreparedModel's preparation so that pixels of the original geometry keep their covered fraction
+    as transmission mask (PreparedModel has no public option for fractional coverage)."""
+    def wrapped(vals, seed):
+        p = prep_for(vals, seed)
+        p.mask = np.where(orig_hit, cover, p.mask).astype(np.float32)      # idempotent
+        return p
+    return wrapped
 
 
 # ================================================================================== result
@@ -626,8 +653,10 @@ def diagnose_frames(frames: list, fog: str = "exp2", seed: int = 0, max_candidat
             # well the fitted model reproduces the held-out frames' statistic, and must not lower θ
             st = r["statistic"]
             entry["heldout_statistic"] = st
-            theta_ok = eff == "marine_snow" or d_pf.mean() > -m     # particles at random places lower θ anyway
-            if st["improvement"] > st["margin"] and theta_ok:
+            # random effects (particles, noise at random places) cannot be matched pixel by pixel: judged by their
+            # statistics only (θ is reported); pose error must not lower θ
+            theta_ok = eff in ("marine_snow", "sensor_noise") or d_pf.mean() > -m
+            if (st["improvement"] > st["margin"] and theta_ok) or (eff == "pose_error" and d_pf.mean() > m):
                 stat_accepted.append(eff)
         elif d_pf.mean() > m:
             accepted.append(eff)
@@ -685,10 +714,19 @@ def diagnose_frames(frames: list, fog: str = "exp2", seed: int = 0, max_candidat
                         "explanation": _explain(eff, src["params"], b_held, float(src["held_pf"].mean()),
                                                 sigs.get(eff)),
                         "params": _effect_flat(src["params"], [eff])})
+    if final_effects:
+        # next to an effect that changes the expected image, a noise model is kept only if it does not lower
+        # held-out θ (the other effect changes the signal, hence the intensity dependence of the noise)
+        stat_accepted = [e for e in stat_accepted if e != "sensor_noise" or fits[e]["held_pf"].mean() - b_held
+                         > -fits[e]["margin"]]
+    stat_accepted.sort(key=lambda e: -rank[e])
     for eff in stat_accepted[:max(0, 2 - len(final_effects))]:
         r = fits[eff]
         st = r["statistic"]
-        conf = float(np.clip((0.4 + 0.6 * rank[eff]) * min(1.0, st["improvement"] / (3 * st["margin"])), 0.05, 0.99))
+        strength = st["improvement"] / (3 * st["margin"])
+        if eff == "pose_error":
+            strength = max(strength, float(r["held_pf"].mean() - b_held) / (3 * r["margin"]))
+        conf = float(np.clip((0.4 + 0.6 * rank[eff]) * min(1.0, strength), 0.05, 0.99))
         verdict.append({"effect": eff, "confidence": conf,
                         "explanation": _explain(eff, r["params"], b_held, float(r["held_pf"].mean()), sigs.get(eff),
                                                 statistic=st),
@@ -723,7 +761,8 @@ def diagnose_frames(frames: list, fog: str = "exp2", seed: int = 0, max_candidat
         timing=timing, final_params=final_params, not_judged=not_judged, source=source,
         figures={"rframes": rall, "sims": sims, "res": res, "sigs": sigs, "prox": prox, "fits": fits,
                  "base_x": base_fit.x, "fog": fog, "held": [R_hi[id(f)] for f in held_f],
-                 "base_held_pf": ref_held_pf, "final_key": final_key})
+                 "base_held_pf": ref_held_pf,
+                 "final_key": final_key if final_key in fits else (final_effects[0] if final_effects else None)})
     return diag
 
 
@@ -750,7 +789,15 @@ def _refit(effects, R_hi, R_lo, fit_f, held_f, base_x, sigs, prox, fog, seed, ma
     if not (starts or {}) and not any(get_effect(e).random_per_frame and e != "pose_error" for e in effects):
         # least-squares fit of the same model on the low-resolution fit frames: a start near the optimum
         lmodel = EffectModel([R_lo[id(f)] for f in fit_f], effects, fog=fog, seed=seed)
-        starts_x.append(_ls_fit(lmodel, x_hint))
+        ls_from = x_hint
+        alts = ALT_STARTS.get(effects[0]) if len(effects) == 1 else None
+        if alts:
+            # effects with far-apart plausible configurations: least squares from the best of a few of them
+            xs = [x_hint] + [lmodel.x0(base_x, {effects[0]: a}) for a in alts]
+            e = [np.mean((lmodel.simulate(k, np.stack(xs)) * 255.0 - rf.image[None]) ** 2, axis=(1, 2, 3))
+                 for k, rf in enumerate(lmodel.rframes)]
+            ls_from = xs[int(np.argmin(np.mean(e, axis=0)))]
+        starts_x.append(_ls_fit(lmodel, ls_from))
     # start from the best of "effect absent" (its identity values), the signature estimate and the LS fit
     with FrameObjective(rfit, model, noise, seed=seed) as of:
         th = of(np.stack(starts_x))

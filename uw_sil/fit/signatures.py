@@ -479,10 +479,50 @@ def sig_unmodeled_geometry(ctx: SignatureContext, margin: int = 4) -> Signature:
     if not shares:
         return Signature("unmodeled_geometry", 0.0, judged=False, reason="too little open water")
     share = float(np.median(shares))
-    score = share / 0.006
+    horizon = _horizon_ramps(ctx, margin)
+    ramp = float(np.median([h["excess"] for h in horizon])) if horizon else 0.0
+    score = max(share / 0.006, ramp / 3.0)
     return Signature("unmodeled_geometry", float(score), {"structured_share": share, "per_frame": shares,
-                                                           "textured_share": texture},
+                                                           "textured_share": texture, "horizon_ramp": horizon},
                      {"share": share}, {"maps": maps})
+
+
+def _horizon_ramps(ctx: SignatureContext, margin: int) -> list:
+    """A seafloor far below fades into the water colour towards its horizon: in open water, the row profile
+    of the residual is flat above a horizon row and ramps below it (a kink a smooth surface does not have).
+    Per frame: the median residual per row of the open water (luminance, grey levels), fitted by a quadratic
+    in the row and by a constant plus a ramp below a horizon (searched); ``excess`` is how much better the
+    ramp fits, in units of the row medians' noise (rms improvement / standard error), signed by nothing."""
+    out = []
+    for k, rf in enumerate(ctx.rframes):
+        w = rf.water & ~dilate(rf.cover > 0, margin)
+        D = luminance(ctx.res[k])
+        rows = [(i, float(np.median(D[i][w[i]])), int(w[i].sum())) for i in range(rf.shape[0]) if w[i].sum() >= 20]
+        if len(rows) < 20:
+            continue
+        yy = np.array([r[0] for r in rows], float) / rf.shape[0]
+        m = np.array([r[1] for r in rows])
+        n = np.array([r[2] for r in rows], float)
+        se = 1.25 * float(np.mean(ctx.noise[k])) * 0.6 / np.sqrt(n)      # median of n: ~1.25 sigma/sqrt(n)
+        wgt = 1.0 / se ** 2
+        Aq = np.stack([np.ones_like(yy), yy, yy * yy], 1)
+        _, rq, _ = _wls(Aq, m, wgt)
+        best = None
+        for h in np.linspace(0.2, 0.9, 29):
+            Ar = np.stack([np.ones_like(yy), np.maximum(0.0, yy - h), np.maximum(0.0, yy - h) ** 2], 1)
+            if np.sum(yy > h) < 8:
+                continue
+            _, rr, _ = _wls(Ar, m, wgt)
+            chi = float(np.sum(wgt * rr * rr))
+            if best is None or chi < best[0]:
+                best = (chi, h)
+        if best is None:
+            continue
+        chi_q = float(np.sum(wgt * rq * rq))
+        # improvement of the fit per row, in standard errors
+        excess = max(0.0, (chi_q - best[0]) / len(yy)) ** 0.5
+        out.append({"frame": int(rf.frame.index), "horizon_row_share": float(best[1]), "excess": float(excess)})
+    return out
 
 
 def trimmed_sigma(d: np.ndarray, keep: float = 0.9) -> float:
