@@ -34,7 +34,7 @@ from uw_sil.enhance.dcp import dehaze_dcp  # noqa: E402
 from uw_sil.enhance.sil import enhance  # noqa: E402
 from uw_sil.sim.camera import CameraModel  # noqa: E402
 from uw_sil.sim.optics import degrade  # noqa: E402
-from uw_sil.sim.params import RGB_NAMES, UnderwaterParams  # noqa: E402
+from uw_sil.sim.params import UnderwaterParams  # noqa: E402
 from uw_sil.sim.scene import facing_pose  # noqa: E402
 
 CAM = CameraModel.from_fov(160, 120, 70.0)
