@@ -130,3 +130,24 @@ def test_images_mode_on_a_folder(tmp_path):
     assert "vignetting" in [v["effect"] for v in doc["verdict"]]
     assert {"forward_scatter", "pose_error", "unmodeled_geometry", "backscatter_coefficient"} == \
         {n["effect"] for n in doc["not_judged"]}
+
+
+def test_images_mode_noise_needs_visible_noise(tmp_path):
+    """Spatially correlated noise is named when it is visible (3 DN) and not when it is below one grey level."""
+    import cv2
+    from scipy.ndimage import gaussian_filter
+
+    from uw_sil.fit.imagediag import diagnose_images
+
+    rng = np.random.default_rng(1)
+    h, w = 120, 160
+    for level, folder in ((3.0, tmp_path / "noisy"), (0.3, tmp_path / "clean")):
+        folder.mkdir()
+        for i in range(4):
+            base = np.stack([np.full((h, w), v) for v in (30.0, 100.0, 130.0)], -1)
+            n = gaussian_filter(rng.normal(0, 1, (h, w, 3)), (1.0, 1.0, 0))
+            img = base + level * n / n.std()
+            cv2.imwrite(str(folder / f"f{i}.png"), np.clip(np.rint(img[..., ::-1]), 0, 255).astype(np.uint8))
+    named = {k: [v["effect"] for v in diagnose_images(str(tmp_path / k))["verdict"]]
+             for k in ("noisy", "clean")}
+    assert "sensor_noise" in named["noisy"] and "sensor_noise" not in named["clean"], named
