@@ -280,9 +280,10 @@ def diagnose_images(src, image_topic: str = "/camera/image_raw", k: int = 12,
         sig = _med([r["sigma_lag3"] for r in nr])
         parts_n = {"correlation": max(0.0, 1 - (lag or 1)) / 0.15, "intensity_dependence": max(0.0, shot or 0) / 0.12,
                    "blocking": max(0.0, (block or 1) - 1) / 0.15}
-        # the structure of noise matters only where there is noise to see: below ~1 DN (one quantization
-        # step) a correlated or blocky residue is the codec's, not a camera noise the simulation lacks
-        visible = min(1.0, (sig or 0.0) / 1.0)
+        # the structure of noise matters only where there is noise to see: at 0.5 DN (half a quantization
+        # step) and below, a correlated or blocky residue is the codec's, not a camera noise the
+        # simulation lacks; full weight from 1.5 DN
+        visible = float(np.clip(((sig or 0.0) - 0.5) / 1.0, 0.0, 1.0))
         signatures["sensor_noise"] = {"score": max(parts_n.values()) * visible, "sigma_dn": sig, "lag1_over_lag3": lag,
                                       "shot_gain_dn": shot, "block_ratio": block, "parts": parts_n}
     pr = parts["frames"]
