@@ -35,7 +35,7 @@ from rclpy.node import Node
 from rclpy.task import Future
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
-from rclpy.qos import DurabilityPolicy, QoSProfile, qos_profile_sensor_data
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import Float64, String
@@ -103,6 +103,8 @@ def _parameters(sel: dict, fit: dict) -> list:
         ("auto_start", True, "start collecting at start (else on ~/start); read at start", {"read_only": True}),
         ("model_path", "", "panel model for frame selection (empty: the procedural panel); read at start",
          {"read_only": True}),
+        ("reliable_input", False, "subscribe to images and camera_info reliably (a replayed bag: nothing lost) "
+         "instead of best effort (matches any camera driver); read at start", {"read_only": True}),
         ("exit_when_done", False, "exit after the fit: status 0 when done, 1 when failed; read at start",
          {"read_only": True}),
     ]
@@ -148,9 +150,12 @@ class BackwardFitNode(Node):
         # streams: 0 image (primary), 1 camera_info (any age: often latched or slow), 2 pose (max_dt)
         self.sync = StampSynchronizer(3, max_dt=[None, self.get_parameter("max_dt").value])
         # Sensor-data QoS (best effort: matches any camera driver), but a deeper queue than its 5: frame
-        # selection renders in the callback, and the first frames of a dive should not be dropped.
-        sensor = QoSProfile(depth=30, reliability=qos_profile_sensor_data.reliability,
-                            durability=qos_profile_sensor_data.durability)
+        # selection renders in the callback, and the first frames of a dive should not be dropped. A
+        # replayed bag is played reliably and read reliably: under load best effort lost frames, and the
+        # fit then took other frames than `uw-sil fit` takes from the same bag.
+        reliability = (ReliabilityPolicy.RELIABLE if self.get_parameter("reliable_input").value
+                       else qos_profile_sensor_data.reliability)
+        sensor = QoSProfile(depth=30, reliability=reliability, durability=qos_profile_sensor_data.durability)
         self.subs = [
             self.create_subscription(Image, "camera/image_raw", lambda m: self._add(0, m), sensor),
             self.create_subscription(CameraInfo, "camera/camera_info", lambda m: self._add(1, m), sensor),
