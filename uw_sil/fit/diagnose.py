@@ -72,8 +72,10 @@ class DiagnosisError(ValueError):
 #: the resolution class of the refit ("low": ~160 px wide, the effect is smooth; "high": ~320 px) and
 #: fixed values.
 FIT_SETTINGS = {
-    "artificial_light": {"free": ("offset_x", "offset_y", "toe_in", "half_angle", "shape", "balance", "fill", "veil"),
-                         "res": "low", "fixed": {"power": 1.0}},
+    # power is free: how bright the lamps are against the render's light level is the recording's, not ours
+    # (fixed at 1, a foreign rig normalized at 2.5 m instead of 2 m could not be fitted: held-out θ fell)
+    "artificial_light": {"free": ("offset_x", "offset_y", "toe_in", "half_angle", "shape", "balance", "fill", "power",
+                                  "veil"), "res": "low", "fixed": {}},
     "forward_scatter": {"free": ("strength", "width", "tail"), "res": "high", "fixed": {}},
     "backscatter_coefficient": {"free": ("ratio_r", "ratio_g", "ratio_b", "decay"), "res": "low", "fixed": {}},
     "vignetting": {"free": ("k1", "k2", "cx", "cy"), "res": "low", "fixed": {}},
