@@ -24,6 +24,7 @@ Anything else is a bug: Python's traceback and exit status 1.
 from __future__ import annotations
 
 import argparse
+import json
 import signal
 import sys
 import threading
@@ -581,6 +582,16 @@ def cmd_demo(args) -> int:
         cmd_diagnose(build_parser().parse_args(["diagnose", "--bag", str(hidden), "--json", str(out / "diagnose.json"),
                                                 "--params-out", str(out / "diagnose.yaml"),
                                                 "--report", str(out / "diagnose"), "--seed", str(args.seed)]))
+        # the demo concealed it, so the demo may now open the sidecar the diagnosis never saw
+        from .bags.synth import load_truth
+
+        hidden_truth = sorted(load_truth(hidden).get("effects") or [])
+        doc = json.loads((out / "diagnose.json").read_text())
+        named = [v["effect"] for v in doc["verdict"]]
+        found = bool(hidden_truth) and set(named[:len(hidden_truth)]) == set(hidden_truth)
+        print(f"concealed in the second dive: {', '.join(hidden_truth) or 'nothing'}; diagnosis: "
+              f"{', '.join(named) or 'none'} -> {'found' if found else 'NOT found'}; held-out θ "
+              f"{doc['base']['theta_heldout']:.4f} -> {doc['final']['theta_heldout']:.4f}")
     print(f"demo done in {time.perf_counter() - t0:.0f} s: open {out / 'report' / 'index.html'}"
           + (f" and {out / 'diagnose' / 'index.html'}" if args.diagnose else ""))
     return 0
@@ -748,7 +759,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--seed", type=int, default=0)
     g.set_defaults(func=cmd_diagnose)
 
-    d = sub.add_parser("demo", help="synthesize a trial, fit it, enhance it and write the report")
+    d = sub.add_parser("demo", help="synthesize a trial, fit it, enhance it, write the report, and diagnose a second dive with a concealed effect")
     d.add_argument("--out-dir", default="out")
     d.add_argument("--frames", type=int, default=30)
     d.add_argument("--seed", type=int, default=0)
