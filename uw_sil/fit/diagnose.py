@@ -791,15 +791,12 @@ def _refit(effects, R_hi, R_lo, fit_f, held_f, base_x, sigs, prox, fog, seed, ma
     if not (starts or {}) and not any(get_effect(e).random_per_frame and e != "pose_error" for e in effects):
         # least-squares fit of the same model on the low-resolution fit frames: a start near the optimum
         lmodel = EffectModel([R_lo[id(f)] for f in fit_f], effects, fog=fog, seed=seed)
-        ls_from = x_hint
         alts = ALT_STARTS.get(effects[0]) if len(effects) == 1 else None
-        if alts:
-            # effects with far-apart plausible configurations: least squares from the best of a few of them
-            xs = [x_hint] + [lmodel.x0(base_x, {effects[0]: a}) for a in alts]
-            e = [np.mean((lmodel.simulate(k, np.stack(xs)) * 255.0 - rf.image[None]) ** 2, axis=(1, 2, 3))
-                 for k, rf in enumerate(lmodel.rframes)]
-            ls_from = xs[int(np.argmin(np.mean(e, axis=0)))]
-        starts_x.append(_ls_fit(lmodel, ls_from))
+        # effects with far-apart plausible configurations: least squares from each of them, and θ below picks
+        # (picking one raw start by its squared error first lost a foreign lamp rig: a start with the right
+        # geometry but the wrong brightness looked worse than a wrong geometry)
+        for xs in [x_hint] + [lmodel.x0(base_x, {effects[0]: a}) for a in alts or []]:
+            starts_x.append(_ls_fit(lmodel, xs))
     # start from the best of "effect absent" (its identity values), the signature estimate and the LS fit
     with FrameObjective(rfit, model, noise, seed=seed) as of:
         th = of(np.stack(starts_x))
