@@ -365,3 +365,28 @@ def test_sim_camera_node_declares_effect_parameters(tmp_path, frames):
         if node is not None:
             node.destroy_node()
         ctx.try_shutdown()
+
+
+def test_prepared_model_takes_pixel_coverage_where_the_scene_stays(frames, renderer):
+    """Area-exact silhouettes of a reduced render (``cover``) scale the transmission of the scene's own
+    pixels: without geometry effects, with a seafloor (it only fills water), never with a pose error (the
+    silhouettes move; a coverage at the identity alone would make the objective jump there)."""
+    cam = renderer.camera
+    T, rr = frames["far"]
+    hit = np.isfinite(rr.range)
+    cover = np.where(hit, 0.5, 0.0).astype(np.float32)
+    base, ev0 = P.as_vector(), np.zeros(0)
+    full = UnderwaterModel(P).prepare(rr, cam, pose=T)(base, ev0)
+    half = UnderwaterModel(P).prepare(rr, cam, pose=T, cover=cover)(base, ev0)
+    b = np.asarray(P.b, np.float32)
+    # I = i T + b (1 - T): halving T moves the panel pixels half way towards the background colour
+    np.testing.assert_allclose(half[hit] - b, 0.5 * (full[hit] - b), atol=2e-6)
+    np.testing.assert_array_equal(half[~hit], full[~hit])
+    floor = UnderwaterModel(P, {"unmodeled_geometry": "strong"})
+    pm = floor.prepare(rr, cam, pose=T, cover=cover)
+    _, _, prep = pm._terms(base, floor.effect_vector(), seed=0)
+    assert (prep.mask[hit] == 0.5).all() and (prep.mask[prep.geom.hit & ~hit] == 1).all()
+    pose = UnderwaterModel(P, {"pose_error": {"tx": 0.0}})
+    assert pose.prepare(rr, cam, pose=T, cover=cover).cover is None
+    with pytest.raises(ValueError, match="cover has shape"):
+        UnderwaterModel(P).prepare(rr, cam, pose=T, cover=cover[1:])

@@ -168,8 +168,8 @@ def run_dive(dive: Dive, out_root: str, steps: Sequence[str], options: dict, for
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     row = {"dive": dive.name, "bag": dive.bag, "status": "ok", "error": "", "steps": ",".join(steps)}
-    log = io.StringIO(malloc_note)
-    log.seek(0, io.SEEK_END)
+    log = io.StringIO()
+    log.write(malloc_note)
     for step in steps:
         argv = _step_argv(step, dive.bag, out, options)
         print(f"$ uw-sil {' '.join(argv)}", file=log)
@@ -244,7 +244,8 @@ def run_campaign(dives: Sequence[Dive], out_root, steps: Sequence[str] = ("fit",
         threads_per_dive = max(1, cores // max(1, min(jobs or cores, len(dives) or 1)))
     rows = {}
     try:
-        futures = {ex.submit(run_dive, d, str(out_root), steps, options, force, retry_failed, threads_per_dive): d for d in dives}
+        futures = {ex.submit(run_dive, d, str(out_root), steps, options, force, retry_failed, threads_per_dive): d
+                   for d in dives}
         for n, fut in enumerate(as_completed(futures), 1):
             d = futures[fut]
             try:

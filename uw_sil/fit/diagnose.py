@@ -144,13 +144,11 @@ class EffectModel:
         self._elo, self._ehi = lo[self.idx], hi[self.idx]
         self.owns_noise = "sensor_noise" in self.effects
         self._model = model
-        self._geometric = any(get_effect(n).stage == "geometry" for n in self.effects)
         self._seed = seed
         self._local = threading.local()          # PreparedModel is not thread-safe: one set per thread
         self.pms = self._prepare()
 
     def _prepare(self) -> list:
-        from ..sim.effects import get_effect
         from ..sim.model import Geometry
 
         pms = []
@@ -158,17 +156,9 @@ class EffectModel:
             geom = Geometry(rf.camera, rf.rgb, np.where(rf.cover > 0, rf.depth, np.inf),
                             np.where(rf.cover > 0, rf.range, np.inf), rf.labels, rf.part_ids,
                             pose=rf.frame.pose)
-            pm = self._model.prepare(geom, rf.camera, pose=rf.frame.pose, seed=1000 + k + 7919 * self._seed)
-            if not self._geometric:
-                # area-exact silhouettes: the transmission of a block scales with its covered fraction
-                pm._prep_for([get_effect(n).from_vector(self.template[s]) for n, s in zip(pm.effect_names,
-                                                                                        pm.slices)], None)
-                pm._base_prep.mask = rf.cover.astype(np.float32)
-            elif set(self.effects) == {"unmodeled_geometry"}:
-                # the seafloor only adds surfaces where the scene model shows water: the model's own pixels
-                # keep their covered fraction (area-exact silhouettes, as the base model)
-                pm._prep_for = _keep_cover(pm._prep_for, rf.cover.astype(np.float32), rf.cover > 0)
-            pms.append(pm)
+            # area-exact silhouettes at the reduced resolution, as the base model has them
+            pms.append(self._model.prepare(geom, rf.camera, pose=rf.frame.pose, seed=1000 + k + 7919 * self._seed,
+                                           cover=rf.cover))
         return pms
 
     def _thread_pms(self) -> list:
@@ -220,16 +210,6 @@ class EffectModel:
         for n in self.effects:
             eff[n] = {p: float(ev[self.pnames.index(f"{n}.{p}")]) for p in self.values[n]}
         return {"base": {k: float(v) for k, v in zip(RGB_NAMES, base)}, "effects": eff}
-
-
-def _keep_cover(prep_for, cover, orig_hit):
-    """Wrap PreparedModel's preparation so that pixels of the original geometry keep their covered fraction
-    as transmission mask (PreparedModel has no public option for fractional coverage)."""
-    def wrapped(vals, seed):
-        p = prep_for(vals, seed)
-        p.mask = np.where(orig_hit, cover, p.mask).astype(np.float32)      # idempotent
-        return p
-    return wrapped
 
 
 # ================================================================================== result

@@ -337,9 +337,9 @@ class UnderwaterModel:
 
     # ------------------------------------------------------------------ evaluation
 
-    def prepare(self, render, camera, pose=None, seed: int = 0) -> "PreparedModel":
+    def prepare(self, render, camera, pose=None, seed: int = 0, cover=None) -> "PreparedModel":
         """Batched evaluator for fitting (see :class:`PreparedModel`)."""
-        return PreparedModel(self, render, camera, pose=pose, seed=seed)
+        return PreparedModel(self, render, camera, pose=pose, seed=seed, cover=cover)
 
     def degrade(self, render, camera, rng: Optional[np.random.Generator] = None, pose=None) -> np.ndarray:
         """Underwater image (H, W, 3) float32 in [0, 1] of a clean render.
@@ -458,9 +458,15 @@ class PreparedModel:
     ``seed`` (default: the one given at preparation) for every candidate.
 
     Effect vectors are bounds-checked (ValueError naming the parameter); base vectors are validated.
+
+    ``cover`` (H, W), optional: the fraction of each pixel the render's surfaces cover (a reduced render's
+    area-exact silhouettes); it scales the transmission of those pixels when the model keeps the scene's
+    surfaces where they are (no geometry effect, or only ones that ``keeps_scene``; with a pose error the
+    silhouettes move, and the coverage applies to no parameter value, so the objective stays continuous at
+    the identity). Default: the hit mask.
     """
 
-    def __init__(self, model: UnderwaterModel, render, camera, pose=None, seed: int = 0):
+    def __init__(self, model: UnderwaterModel, render, camera, pose=None, seed: int = 0, cover=None):
         self.model = model
         self.fog = model.fog
         self.seed = int(seed)
@@ -481,6 +487,11 @@ class PreparedModel:
         self.shape = self.geom0.shape
         self._geo_effects = [(k, e) for k, e in enumerate(self.effects) if e.stage == "geometry"]
         self._other = [e for e in self.effects if e.stage != "geometry"]
+        self.cover = None if cover is None else np.asarray(cover, np.float32)
+        if self.cover is not None and self.cover.shape != self.shape:
+            raise ValueError(f"cover has shape {self.cover.shape}, the render {self.shape}")
+        if not all(e.keeps_scene for _, e in self._geo_effects):
+            self.cover = None
         self._base_prep = None
         self._cache = {}
         self._scratch = None
@@ -492,15 +503,17 @@ class PreparedModel:
 
     # ------------------------------------------------------------------ internals
 
+    def _covered(self, prep: _Prepared) -> _Prepared:
+        """``prep`` with the scene's pixel coverage as transmission mask on the scene's own pixels."""
+        if self.cover is not None:
+            prep.mask = np.where(self.geom0.hit, self.cover, prep.mask).astype(np.float32)
+        return prep
+
     def _prep_for(self, vals, seed) -> _Prepared:
-        if not self._geo_effects:
-            if self._base_prep is None:
-                self._base_prep = _Prepared(self.geom0, self.fog, self._other)
-            return self._base_prep
         active = [(k, e) for k, e in self._geo_effects if not e.is_identity(vals[k])]
         if not active:
             if self._base_prep is None:
-                self._base_prep = _Prepared(self.geom0, self.fog, self._other)
+                self._base_prep = self._covered(_Prepared(self.geom0, self.fog, self._other))
             return self._base_prep
         draws = any(e.draws(vals[k]) for k, e in active) and seed is not None
         key = tuple((k, tuple(vals[k].values())) for k, _ in active) + ((seed,) if draws else ())
@@ -510,7 +523,7 @@ class PreparedModel:
                                restoring=seed is None)
             for k, e in active:
                 e.apply(terms, vals[k], None if seed is None else effect_rng(seed, e.name))
-            p = _Prepared(terms.geom, self.fog, self._other)
+            p = self._covered(_Prepared(terms.geom, self.fog, self._other))
             if len(self._cache) >= 8:
                 self._cache.clear()
             self._cache[key] = p

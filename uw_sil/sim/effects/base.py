@@ -156,6 +156,9 @@ class Effect:
         :meth:`invert`; radiance/medium/geometry effects are undone through the terms they set).
     random_per_frame : bool
         Whether it draws new random numbers every frame (from the generator it is given).
+    keeps_scene : bool
+        Geometry stage only: whether the scene's own surfaces stay where they are (the effect only adds
+        surfaces where the scene showed water), so that their pixel coverage still holds.
     """
 
     name: str = ""
@@ -164,6 +167,7 @@ class Effect:
     stage: str = "radiance"
     invertible: bool = False
     random_per_frame: bool = False
+    keeps_scene: bool = False
     summary: str = ""
 
     # ------------------------------------------------------------------ parameters

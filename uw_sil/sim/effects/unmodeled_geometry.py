@@ -61,6 +61,7 @@ class UnmodeledGeometry(Effect):
     stage = "geometry"
     invertible = True
     random_per_frame = False
+    keeps_scene = True             # the seafloor only fills pixels where the scene showed water
     summary = "a textured seafloor plane below the panel (height, tilt, albedo)"
     params = (
         EffectParam("floor_y", -0.85, -5.0, -0.36, "m", "seafloor height in the panel frame (y up)"),
