@@ -27,14 +27,8 @@ from uw_sil.fit.backward import fit_bag  # noqa: E402
 from uw_sil.sim.camera import CameraModel  # noqa: E402
 from uw_sil.bags.synth import load_truth, synthesize_trial  # noqa: E402
 
-
-def errors(params, truth):
-    got, want = params.as_vector(), truth.as_vector()
-    rel_a = np.abs(got[:3] - want[:3]) / want[:3]
-    abs_b = np.abs(got[3:6] - want[3:6])
-    rel_rho = abs(got[6] - want[6]) / want[6]
-    ok = bool((rel_a <= 0.05).all() and (abs_b <= 0.01).all() and rel_rho <= 0.10)
-    return rel_a, abs_b, rel_rho, ok
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from bench_recovery import errors  # noqa: E402  -- the same recovery criterion
 
 
 def main():
