@@ -208,6 +208,27 @@ def test_sensor_noise_signal_dependent_and_fixed_pattern(frames, renderer):
     assert not np.array_equal(degrade(spec, frames["near"], cam, seed=1), degrade(spec, frames["near"], cam, seed=2))
 
 
+def test_sensor_noise_column_and_row_patterns_are_fixed_offsets(frames, renderer):
+    cam = renderer.camera
+    grey = UnderwaterParams(a=(0.0, 0.0, 0.0), b=(0.5, 0.5, 0.5), rho_f=0.0)
+    base = degrade({}, frames["near"], cam, params=grey)
+    col = degrade({"sensor_noise": {"col": 2.0}}, frames["near"], cam, seed=1, params=grey) - base
+    # one offset per column, the same down the column and in all channels (up to the 8-bit rounding),
+    # about 2 DN std over columns
+    q, ok = 1.01 / 255, (base > 8 / 255) & (base < 247 / 255)          # not clipped
+    np.testing.assert_allclose(col[ok], np.broadcast_to(np.median(col, axis=(0, 2), keepdims=True), col.shape)[ok],
+                               atol=q)
+    assert 1.6 < 255 * np.median(col, axis=(0, 2)).std() < 2.4
+    row = degrade({"sensor_noise": {"row": 1.0}}, frames["near"], cam, seed=2, params=grey) - base
+    np.testing.assert_allclose(row[ok], np.broadcast_to(np.median(row, axis=(1, 2), keepdims=True), row.shape)[ok],
+                               atol=q)
+    assert 0.7 < 255 * np.median(row, axis=(1, 2)).std() < 1.3
+    both = {"sensor_noise": {"read": 1.0, "col": 2.0}}
+    d = degrade(both, frames["near"], cam, seed=1, params=grey) - degrade(both, frames["near"], cam, seed=2, params=grey)
+    # the pattern cancels between two frames: their difference has no column structure left
+    assert np.median(d, axis=(0, 2)).std() < 0.25 * np.median(col, axis=(0, 2)).std()
+
+
 def test_camera_response_is_a_function_of_intensity(frames, renderer):
     cam = renderer.camera
     base = degrade({}, frames["near"], cam)

@@ -79,7 +79,7 @@ FIT_SETTINGS = {
     "forward_scatter": {"free": ("strength", "width", "tail"), "res": "high", "fixed": {}},
     "backscatter_coefficient": {"free": ("ratio_r", "ratio_g", "ratio_b", "decay"), "res": "low", "fixed": {}},
     "vignetting": {"free": ("k1", "k2", "cx", "cy"), "res": "low", "fixed": {}},
-    "sensor_noise": {"free": ("shot", "read", "corr", "fpn"), "res": "high", "fixed": {}},
+    "sensor_noise": {"free": ("shot", "read", "corr", "fpn", "col", "row"), "res": "high", "fixed": {}},
     "marine_snow": {"free": ("density", "brightness", "size"), "res": "high", "fixed": {}},
     "camera_response": {"free": ("gamma", "gain_r", "gain_g", "gain_b", "black"), "res": "low", "fixed": {}},
     "unmodeled_geometry": {"free": ("floor_y", "tilt", "albedo", "contrast"), "res": "low", "fixed": {}},
@@ -427,7 +427,8 @@ def _explain(effect: str, params: dict, b_held: float, c_held: float, sig, stati
     if effect == "sensor_noise":
         return (f"the camera noise has structure the simulation's constant noise lacks: variance rising with "
                 f"brightness (shot gain {e.get('shot', 0):.2f} DN/DN, read noise {e.get('read', 0):.1f} DN), "
-                f"correlation over {e.get('corr', 0):.1f} px, fixed pattern {100 * e.get('fpn', 0):.1f} %; {gain}")
+                f"correlation over {e.get('corr', 0):.1f} px, fixed pattern {100 * e.get('fpn', 0):.1f} % gain, "
+                f"{e.get('col', 0):.1f} DN per column, {e.get('row', 0):.1f} DN per row; {gain}")
     if effect == "marine_snow":
         dens = st.get("positive_per_mpx")
         extra = f" ({dens:.0f} bright specks per megapixel, new in every frame)" if dens is not None else ""
@@ -905,6 +906,9 @@ def _noise_refit(fit_f, held_f, base_x, sig, fog, seed, ref_held_pf, base_theta_
     shot = float(np.clip(h.get("shot_gain_dn") or 0.02, 0.0, 1.0))
     start = {"shot": shot, "read": float(np.clip(math.sqrt(max(sw * sw - shot * iw, 0.04)), 0, 5)),
              "corr": float(np.clip((1 - (h.get("lag_ratio") or 1.0)) * 5.0, 0, 2)), "fpn": 0.002}
+    for kind in ("col", "row"):          # a fixed readout pattern shows as excess variance of column (row) medians
+        ratio = np.nanmedian([r[f"{kind}_ratio"] for r in real_fit if r]) if any(real_fit) else 1.0
+        start[kind] = 0.3 * sw if ratio > 1.5 else 0.0
     x0 = model.x0(base_x, {"sensor_noise": start})
     free = np.arange(7, len(x0))
 

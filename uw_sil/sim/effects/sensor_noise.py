@@ -1,12 +1,17 @@
-"""Sensor noise: signal-dependent (Poisson-Gaussian), optionally spatially correlated, with a fixed pattern.
+"""Sensor noise: signal-dependent (Poisson-Gaussian), optionally spatially correlated, with fixed patterns.
 
 In grey levels (DN, 0..255) the temporal noise has variance ``shot * I + read^2`` (photon shot noise
 through the camera gain, plus read noise; deep-sea HD cameras: shot 0.01-0.5 DN, read 0.5-3 DN).
 Demosaicing and in-camera denoising correlate it in space: the white field is blurred with a Gaussian of
-``corr`` pixels and rescaled to unit variance. The fixed pattern (photo-response non-uniformity) is a
-per-pixel gain ``1 + fpn * P`` with ``P`` a standard normal field that is the same in every frame (drawn
-once from a fixed seed per image size). New temporal noise every frame, from the generator given.
-Not invertible.
+``corr`` pixels and rescaled to unit variance. Fixed patterns are the same in every frame (drawn once from
+fixed seeds per image size), as EMVA 1288 separates them:
+
+- photo-response non-uniformity, a per-pixel gain ``1 + fpn * P`` (``P`` standard normal per pixel);
+- dark-signal non-uniformity of the readout chain: additive offsets per column (``col`` DN std; CMOS
+  sensors read each column through its own amplifier/ADC) and per row (``row`` DN std; line-wise reset
+  and reference noise), the same in all three channels (demosaicing mixes the raw columns).
+
+New temporal noise every frame, from the generator given. Not invertible.
 """
 from __future__ import annotations
 
@@ -19,13 +24,17 @@ _FPN_SEED = 0x5EED_F1
 _patterns: dict = {}
 
 
-def fixed_pattern(shape) -> np.ndarray:
-    """The (3, H, W) float32 standard-normal fixed-pattern field of an image size (cached)."""
-    key = tuple(shape)
+def fixed_pattern(shape, kind: str = "pixel") -> np.ndarray:
+    """A standard-normal fixed pattern of a (3, H, W) image size, the same on every call (cached):
+    ``pixel``: (3, H, W); ``col``: (1, 1, W) offsets per column; ``row``: (1, H, 1) offsets per row."""
+    key = (tuple(shape), kind)
     p = _patterns.get(key)
     if p is None:
-        p = np.random.default_rng(_FPN_SEED).standard_normal(key, dtype=np.float32)
-        if len(_patterns) > 8:
+        c, h, w = shape
+        size = {"pixel": (c, h, w), "col": (1, 1, w), "row": (1, h, 1)}[kind]
+        seed = {"pixel": _FPN_SEED, "col": _FPN_SEED + 1, "row": _FPN_SEED + 2}[kind]
+        p = np.random.default_rng(seed).standard_normal(size, dtype=np.float32)
+        if len(_patterns) > 12:
             _patterns.clear()
         _patterns[key] = p
     return p
@@ -48,12 +57,15 @@ class SensorNoiseEffect(Effect):
     stage = "sensor"
     invertible = False
     random_per_frame = True
-    summary = "Poisson-Gaussian noise (var = shot*I + read^2 in DN), spatially correlated, fixed-pattern gain"
+    summary = ("Poisson-Gaussian noise (var = shot*I + read^2 in DN), spatially correlated, fixed patterns "
+               "(per-pixel gain, column and row offsets)")
     params = (
         EffectParam("shot", 0.0, 0.0, 1.0, "DN", "shot-noise gain: variance per grey level of signal"),
         EffectParam("read", 0.0, 0.0, 5.0, "DN", "read-noise standard deviation"),
         EffectParam("corr", 0.0, 0.0, 2.0, "px", "spatial correlation: Gaussian sigma of the noise field"),
         EffectParam("fpn", 0.0, 0.0, 0.05, "", "fixed-pattern gain non-uniformity (std, relative)"),
+        EffectParam("col", 0.0, 0.0, 5.0, "DN", "fixed offset per column (std): column amplifier/ADC pattern"),
+        EffectParam("row", 0.0, 0.0, 5.0, "DN", "fixed offset per row (std): line-wise readout pattern"),
     )
     severities = {
         "mild": {"shot": 0.05, "read": 0.6, "corr": 0.6, "fpn": 0.003},
@@ -67,6 +79,9 @@ class SensorNoiseEffect(Effect):
         I = terms.I
         if values["fpn"] > 0:
             I *= 1 + np.float32(values["fpn"]) * fixed_pattern(I.shape)
+        for kind in ("col", "row"):
+            if values[kind] > 0:
+                I += np.float32(values[kind] / 255.0) * fixed_pattern(I.shape, kind)
         if rng is None or not self.draws(values):
             return
         var = np.clip(I, 0, 1) * np.float32(values["shot"] / 255.0) + np.float32((values["read"] / 255.0) ** 2)
