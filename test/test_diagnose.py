@@ -151,3 +151,25 @@ def test_images_mode_noise_needs_visible_noise(tmp_path):
     named = {k: [v["effect"] for v in diagnose_images(str(tmp_path / k))["verdict"]]
              for k in ("noisy", "clean")}
     assert "sensor_noise" in named["noisy"] and "sensor_noise" not in named["clean"], named
+
+
+def test_noise_statistics_leave_particles_out():
+    """Dense bright specks (marine snow) read as correlated, strong noise unless the statistics leave them
+    out; on a frame without specks nothing is left out."""
+    import cv2
+
+    from uw_sil.fit.signatures import noise_statistics, particle_exclusion
+
+    rng = np.random.default_rng(0)
+    h, w = 480, 640
+    S = np.full((h, w), 100.0, np.float32)
+    hit = np.zeros((h, w), bool)
+    noisy = S + rng.normal(0, 2.0, (h, w)).astype(np.float32)
+    assert particle_exclusion(noisy, S, hit) is None
+    specks = np.zeros((h, w), np.float32)
+    specks[rng.integers(0, h, 1500), rng.integers(0, w, 1500)] = 1.0
+    Y = noisy + 60 * 2 * np.pi * 1.5 ** 2 * cv2.GaussianBlur(specks, (0, 0), 1.5)
+    raw = noise_statistics(Y, S, hit)
+    assert raw["sigma_water"] > 4.0 and raw["lag_ratio"] < 0.7              # specks taken for noise
+    st = noise_statistics(Y, S, hit, particle_exclusion(Y, S, hit))
+    assert 1.8 < st["sigma_water"] < 2.5 and st["lag_ratio"] > 0.9

@@ -769,10 +769,11 @@ def _refit(effects, R_hi, R_lo, fit_f, held_f, base_x, sigs, prox, fog, seed, ma
         starts_x.append(model.x0(base_x, keep))
     if effects == ["pose_error"] and sigs.get("pose_error") is not None:
         starts_x.append(model.x0(base_x, {"pose_error": _pose_hint(sigs["pose_error"].hint.get("motion") or [], -1.0)}))
-    if not (starts or {}) and not any(get_effect(e).random_per_frame and e != "pose_error" for e in effects):
-        # least-squares fit of the same model on the low-resolution fit frames: a start near the optimum
+    if not any(get_effect(e).random_per_frame and e != "pose_error" for e in effects):
+        # least-squares fit of the same model on the low-resolution fit frames: a start near the optimum (for a
+        # pair from both effects' own fits: each alone has absorbed part of the other, jointly they separate)
         lmodel = EffectModel([R_lo[id(f)] for f in fit_f], effects, fog=fog, seed=seed)
-        alts = ALT_STARTS.get(effects[0]) if len(effects) == 1 else None
+        alts = ALT_STARTS.get(effects[0]) if len(effects) == 1 and not starts else None
         # effects with far-apart plausible configurations: least squares from each of them, and θ below picks
         # (picking one raw start by its squared error first lost a foreign lamp rig: a start with the right
         # geometry but the wrong brightness looked worse than a wrong geometry)
@@ -869,9 +870,11 @@ def _noise_refit(fit_f, held_f, base_x, sig, fog, seed, ref_held_pf, base_theta_
     from ..sim.noise import NoiseField, estimate_noise_sigma
     from ..sim.optics import degrade
     from .optimize import optimize
-    from .signatures import luminance, noise_statistics
+    from .signatures import luminance, noise_statistics, particle_exclusion
 
     def prep(frames):
+        """per frame: noise-free simulation S, the recording's statistics, and the pixels every statistic of
+        that frame uses (hit: the model; excl: the recording's particles, left out of real and simulated)."""
         rfs = [reduce_frame(f, 1) for f in frames]
         S, real, hits = [], [], []
         for f in frames:
@@ -880,14 +883,16 @@ def _noise_refit(fit_f, held_f, base_x, sig, fog, seed, ref_held_pf, base_theta_
             p[3:6] = np.clip(p[3:6], 0, 1)
             S.append(degrade(rr.rgb, rr.range, rr.depth, p, fog=fog) * 255.0)
             hit = np.isfinite(rr.range)
-            hits.append(hit)
-            real.append(noise_statistics(luminance(f.image.astype(np.float32)), luminance(S[-1]), hit))
+            Y, Ys = luminance(f.image.astype(np.float32)), luminance(S[-1])
+            excl = particle_exclusion(Y, Ys, hit)
+            hits.append((hit, excl))
+            real.append(noise_statistics(Y, Ys, hit, excl))
         return rfs, S, real, hits
 
     def stats_of(img255, S, hit):
         np.clip(img255, 0, 255, out=img255)
         np.rint(img255, out=img255)
-        return noise_statistics(luminance(img255), luminance(S), hit)
+        return noise_statistics(luminance(img255), luminance(S), *hit)
 
     def dist(a, b):
         if a is None or b is None:
@@ -943,9 +948,10 @@ def _noise_refit(fit_f, held_f, base_x, sig, fog, seed, ref_held_pf, base_theta_
             cand = mdl.simulate(k, x[None])[0] * 255.0
             np.clip(cand, 0, 255, out=cand)
             np.rint(cand, out=cand)
-            eb.append(dist(real[k], noise_statistics(luminance(base_img), luminance(S_list[k]), hits[k])))
-            ec.append(dist(real[k], noise_statistics(luminance(cand), luminance(S_list[k]), hits[k])))
-            hm = [hits[k], ~hits[k]] if hits[k].any() and not hits[k].all() else None
+            eb.append(dist(real[k], noise_statistics(luminance(base_img), luminance(S_list[k]), *hits[k])))
+            ec.append(dist(real[k], noise_statistics(luminance(cand), luminance(S_list[k]), *hits[k])))
+            hit = hits[k][0]
+            hm = [hit, ~hit] if hit.any() and not hit.all() else None
             ref = ThetaReference(f.image, hist_mask=hm)
             tb.append(float(ref.score(base_img)[0]))
             tc.append(float(ref.score(cand)[0]))

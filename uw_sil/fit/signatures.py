@@ -547,13 +547,25 @@ def _hp(img, s=3.0):
     return img - cv2.GaussianBlur(img, (0, 0), s)
 
 
-def noise_statistics(Y: np.ndarray, S: np.ndarray, hit: np.ndarray) -> Optional[dict]:
+def particle_exclusion(Y: np.ndarray, S: np.ndarray, hit: np.ndarray, grow: int = 3) -> Optional[np.ndarray]:
+    """Pixels of a recording's sparse bright outliers (particles: :func:`speck_masks`), grown by ``grow``
+    pixels to take their blurred wings; None when there are none. Noise statistics leave them out: a speck
+    of a few pixels is correlated, bright structure that white-noise statistics would read as noise."""
+    pos = speck_masks(Y, S, hit)[0]
+    return dilate(pos, grow) if pos.any() else None
+
+
+def noise_statistics(Y: np.ndarray, S: np.ndarray, hit: np.ndarray,
+                     exclude: Optional[np.ndarray] = None) -> Optional[dict]:
     """Noise statistics of one full-resolution frame (luminance ``Y``, grey levels) against its noise-free
     simulation ``S`` (luminance) with model pixels ``hit``: water noise sigma (lag-3 differences), lag-1 over
     lag-3 sigma (1 for white noise), column and row fixed-pattern variance ratios, the noise sigma on flat
-    object parts and the intensities of both. None when the frame has too little open water."""
+    object parts and the intensities of both. ``exclude``: pixels left out (particles of the recording, see
+    :func:`particle_exclusion`; give a simulation of the same frame the same mask). None when the frame has
+    too little open water."""
     # open water well away from the model (a pose error moves real edges several pixels off the render)
-    water = ~dilate(hit, 24)
+    open_water = ~dilate(hit, 24)
+    water = open_water if exclude is None else open_water & ~exclude
     if water.sum() < 2000:
         return None
     hp = _hp(Y, 2.0)
@@ -563,16 +575,25 @@ def noise_statistics(Y: np.ndarray, S: np.ndarray, hit: np.ndarray) -> Optional[
     out = {"sigma_water": s3, "lag_ratio": s1 / s3 if s3 > 0 else 1.0, "col_ratio": 1.0, "row_ratio": 1.0,
            "sigma_object": None, "i_object": None, "i_water": float(np.median(Y[water])), "hp": hp, "water": water}
     # fixed pattern: column (row) medians of the high-passed water against what white noise gives for a
-    # median of n values (pi/2 sigma^2/n); medians ignore sparse particles
+    # median of n values (pi/2 sigma^2/n; n the pixels left in the column after the exclusion)
     sig2 = (trimmed_sigma(hp[water][1:] - hp[water][:-1]) if water.sum() > 100 else 0.0) ** 2
-    rows_w = water.all(axis=1)
+
+    def median_var_ratio(block, keep, axis):
+        if keep is None:
+            return float(np.var(np.median(block, axis=axis)) / (np.pi / 2 * sig2 / block.shape[axis]))
+        n = keep.sum(axis=axis)
+        ok = n >= 0.5 * block.shape[axis]
+        if ok.sum() < 20:
+            return 1.0
+        med = np.nanmedian(np.where(keep, block, np.nan), axis=axis)[ok]
+        return float(np.var(med) / np.mean(np.pi / 2 * sig2 / n[ok]))
+
+    rows_w = open_water.all(axis=1)
     if rows_w.sum() >= 20 and sig2 > 0:
-        block = hp[rows_w]
-        out["col_ratio"] = float(np.var(np.median(block, axis=0)) / (np.pi / 2 * sig2 / block.shape[0]))
-    cols_w = water.all(axis=0)
+        out["col_ratio"] = median_var_ratio(hp[rows_w], None if exclude is None else ~exclude[rows_w], 0)
+    cols_w = open_water.all(axis=0)
     if cols_w.sum() >= 20 and sig2 > 0:
-        block = hp[:, cols_w]
-        out["row_ratio"] = float(np.var(np.median(block, axis=1)) / (np.pi / 2 * sig2 / block.shape[1]))
+        out["row_ratio"] = median_var_ratio(hp[:, cols_w], None if exclude is None else ~exclude[:, cols_w], 1)
     import cv2
 
     gy, gx = np.gradient(S)
@@ -580,6 +601,8 @@ def noise_statistics(Y: np.ndarray, S: np.ndarray, hit: np.ndarray) -> Optional[
     # flat in the simulation and in the recording (a pose error puts real edges where the render is flat)
     flat = erode(hit, 3) & (np.hypot(gx, gy) < 0.5) & (np.hypot(rx, ry) < 1.5)
     flat &= erode(flat, 2)
+    if exclude is not None:
+        flat &= ~exclude
     if flat.sum() > 300:
         dd = (Y[:, 3:] - Y[:, :-3])
         ok = flat[:, 3:] & flat[:, :-3]
@@ -608,7 +631,8 @@ def sig_sensor_noise(ctx: SignatureContext) -> Signature:
         fr = rf.frame
         Y = luminance(fr.image.astype(np.float32))
         hit = np.isfinite(fr.render.range)
-        st = noise_statistics(Y, luminance(ctx.full_sim(k)), hit)
+        S = luminance(ctx.full_sim(k))
+        st = noise_statistics(Y, S, hit, particle_exclusion(Y, S, hit))
         if st is None:
             continue
         lag13.append(st["lag_ratio"])
