@@ -53,6 +53,20 @@ def test_registry_names_and_stages():
             e.check(e.severity(level))                       # presets lie inside the bounds
 
 
+def test_diagnosis_leaves_added_surfaces_out_of_noise_statistics(frames, renderer):
+    """The pixels a fitted seafloor adds (with the noise statistics' 24 px margin) are what the noise is then
+    judged without: below the horizon, never the panel's own pixels' interior."""
+    from types import SimpleNamespace
+
+    from uw_sil.fit.diagnose import _added_surface
+
+    T, rr = frames["far"]
+    f = SimpleNamespace(render=rr, camera=renderer.camera, pose=T)
+    m = _added_surface(f, {"unmodeled_geometry": EFFECTS["unmodeled_geometry"].severity("strong")})
+    assert m.mean() > 0.1 and np.nonzero(m)[0].min() > renderer.camera.cy - 24
+    assert not _added_surface(f, {"unmodeled_geometry": {"floor_y": -5.0}})[: int(renderer.camera.cy) - 24].any()
+
+
 @pytest.mark.parametrize("name", sorted(NAMES))
 def test_vector_bounds_round_trip(name):
     e = EFFECTS[name]

@@ -533,7 +533,7 @@ def diagnose_frames(frames: list, fog: str = "exp2", seed: int = 0, max_candidat
                     max_iter: int = 30, popsize: int = 12, progress: Optional[Callable[[str], None]] = None,
                     interrupt: Optional[Callable] = None, effects_allowed=None, source: str = "") -> Diagnosis:
     """Diagnose already loaded frames (:func:`uw_sil.fit.residuals.load_frames`); see the module docstring."""
-    from ..sim.effects import EFFECTS
+    from ..sim.effects import EFFECTS, get_effect
     from ..sim.params import ParamSpace
     from .backward import linear_start
     from .screening import screen_proxies
@@ -697,6 +697,26 @@ def diagnose_frames(frames: list, fog: str = "exp2", seed: int = 0, max_candidat
                         "explanation": _explain(eff, src["params"], b_held, float(src["held_pf"].mean()),
                                                 sigs.get(eff)),
                         "params": _effect_flat(src["params"], [eff])})
+    if final_effects and "sensor_noise" in stat_accepted:
+        lead_geo = [e for e in final_effects if get_effect(e).stage == "geometry"]
+        if lead_geo:
+            # the leading effect puts surfaces where the base model saw open water (a seafloor): the noise is
+            # judged again with those pixels left out of its statistics (their texture is not noise)
+            say(f"judging sensor_noise again without the surfaces {' + '.join(lead_geo)} adds")
+            src = final_fit if final_fit is not None else fits[final_effects[0]]
+            extra = {id(f): _added_surface(f, {e: src["params"]["effects"][e] for e in lead_geo}) for f in frames}
+            r = fits["sensor_noise"] = _noise_refit(fit_f, held_f, base_fit.x, sigs.get("sensor_noise"), fog, seed,
+                                                    ref_held_pf, base_fit.theta_train, exclude=extra)
+            r["margin"] = margin_for(r["held_pf"] - ref_held_pf)
+            st = r["statistic"]
+            for c in candidates:
+                if c["effect"] == "sensor_noise":
+                    c.update(theta_heldout=float(r["held_pf"].mean()),
+                             delta_heldout=float((r["held_pf"] - ref_held_pf).mean()),
+                             params=_effect_flat(r["params"], ["sensor_noise"]), margin=r["margin"],
+                             heldout_statistic=st, rejudged_without=lead_geo)
+            if not st["improvement"] > st["margin"]:
+                stat_accepted.remove("sensor_noise")
     if final_effects:
         # next to an effect that changes the expected image, a noise model is kept only if it does not lower
         # held-out θ (the other effect changes the signal, hence the intensity dependence of the noise)
@@ -857,7 +877,24 @@ def _noise_vector(st: dict) -> np.ndarray:
                      math.log(max(so, 1e-3)) if so is not None else np.nan])
 
 
-def _noise_refit(fit_f, held_f, base_x, sig, fog, seed, ref_held_pf, base_theta_train) -> dict:
+def _added_surface(frame, geo_effects: dict) -> np.ndarray:
+    """Pixels (full resolution, grown by the 24 px margin of the noise statistics) where geometry effects
+    with these values add surfaces to what the frame's render saw."""
+    from ..sim.effects import get_effect
+    from ..sim.model import Geometry
+    from .residuals import dilate
+
+    rr = frame.render
+    geom = Geometry(frame.camera, rr.rgb, rr.depth, rr.range, rr.labels, rr.part_ids, pose=frame.pose)
+    t = SimpleNamespace(geom=geom)
+    for name, values in geo_effects.items():
+        eff = get_effect(name)
+        eff.apply(t, eff.values(values), None)
+    return dilate(t.geom.hit & ~geom.hit, 24)
+
+
+def _noise_refit(fit_f, held_f, base_x, sig, fog, seed, ref_held_pf, base_theta_train,
+                 exclude: Optional[dict] = None) -> dict:
     """Sensor noise, fitted and judged at full resolution by noise statistics (it is new in every frame).
 
     The effect's parameters (shot gain, read noise, correlation, fixed pattern) are chosen by CMA-ES on the
@@ -885,6 +922,9 @@ def _noise_refit(fit_f, held_f, base_x, sig, fog, seed, ref_held_pf, base_theta_
             hit = np.isfinite(rr.range)
             Y, Ys = luminance(f.image.astype(np.float32)), luminance(S[-1])
             excl = particle_exclusion(Y, Ys, hit)
+            more = (exclude or {}).get(id(f))
+            if more is not None:
+                excl = more if excl is None else excl | more
             hits.append((hit, excl))
             real.append(noise_statistics(Y, Ys, hit, excl))
         return rfs, S, real, hits
