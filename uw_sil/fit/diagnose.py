@@ -877,12 +877,11 @@ def _noise_vector(st: dict) -> np.ndarray:
                      math.log(max(so, 1e-3)) if so is not None else np.nan])
 
 
-def _added_surface(frame, geo_effects: dict) -> np.ndarray:
-    """Pixels (full resolution, grown by the 24 px margin of the noise statistics) where geometry effects
-    with these values add surfaces to what the frame's render saw."""
+def _frame_geometry(frame, geo_effects: dict) -> tuple:
+    """(as rendered, with the geometry effects) full-resolution geometry of a frame: geometry-stage effects
+    (a seafloor, a pose correction) applied to its render, as the simulator applies them before shading."""
     from ..sim.effects import get_effect
     from ..sim.model import Geometry
-    from .residuals import dilate
 
     rr = frame.render
     geom = Geometry(frame.camera, rr.rgb, rr.depth, rr.range, rr.labels, rr.part_ids, pose=frame.pose)
@@ -890,7 +889,29 @@ def _added_surface(frame, geo_effects: dict) -> np.ndarray:
     for name, values in geo_effects.items():
         eff = get_effect(name)
         eff.apply(t, eff.values(values), None)
-    return dilate(t.geom.hit & ~geom.hit, 24)
+    return geom, t.geom
+
+
+def _added_surface(frame, geo_effects: dict) -> np.ndarray:
+    """Pixels (full resolution, grown by the 24 px margin of the noise statistics) where geometry effects
+    with these values add surfaces to what the frame's render saw."""
+    from .residuals import dilate
+
+    before, after = _frame_geometry(frame, geo_effects)
+    return dilate(after.hit & ~before.hit, 24)
+
+
+def _corrected_frame(frame, geo_effects: dict):
+    """The frame with its render replaced by the full-resolution geometry the effects give (for a pose
+    correction: the render warped to the corrected pose at full resolution, then reduced like any frame;
+    warping the reduced geometry instead interpolates away a sub-pixel shift's worth of detail)."""
+    import dataclasses
+
+    from ..sim.render import RenderResult
+
+    _, g = _frame_geometry(frame, geo_effects)
+    rr = RenderResult(rgb=g.rgb, depth=g.depth, range=g.range, labels=g.labels, part_ids=g.part_ids)
+    return dataclasses.replace(frame, render=rr, coverage=float(np.mean(g.hit)))
 
 
 def _noise_refit(fit_f, held_f, base_x, sig, fog, seed, ref_held_pf, base_theta_train,
@@ -1040,8 +1061,12 @@ def _pose_refit(R_hi, fit_f, held_f, base_x, sig, fog, seed) -> dict:
     hmodel = EffectModel(rheld, ["pose_error"], fog=fog, seed=seed + 50)
     eh = mse(hmodel, rheld, np.stack([hmodel.x0(base_x), x]))
     imp = (eh[0] - eh[1]) / np.maximum(eh[0], 1e-9)
-    with FrameObjective(rheld, hmodel, noise_sigmas(rheld), seed=seed) as oh:
-        held_pf = oh.per_frame(x[None])[0]
+    # held-out θ of the corrected pose: the frames' geometry moved at full resolution and reduced as the base
+    # model's frames are, scored with the same objective as the base (the camera noise of the recording)
+    corr = {"pose_error": model.params_of(x)["effects"]["pose_error"]}
+    rcorr = [reduce_frame(_corrected_frame(f, corr), R_hi[id(f)].factor) for f in held_f]
+    with FrameObjective(rcorr, BaseModel(rcorr, fog), noise_sigmas(rheld), seed=seed) as oh:
+        held_pf = oh.per_frame(x[None, :7])[0]
     with FrameObjective(rfit, model, noise_sigmas(rfit), seed=seed) as of:
         th_train = float(of(x[None])[0])
     stat = {"name": "mean squared residual (grey levels²)", "real": 0.0, "base_sim": float(eh[0].mean()),
