@@ -22,3 +22,18 @@ def import_or_skip(name: str, reason: str):
         return importlib.import_module(name)
     except ImportError as exc:
         raise ImportError(f"CI=true but {name} cannot be imported ({reason}): {exc}") from exc
+
+
+@pytest.fixture
+def ros(monkeypatch):
+    """A fresh rclpy Context on its own ROS domain with loopback discovery; shut down afterwards."""
+    rclpy = import_or_skip("rclpy", reason="ROS 2 Python packages (the `ros` extra) are not installed")
+    from rclpy.context import Context
+
+    from rosproc import domain_id
+
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=domain_id())
+    yield ctx
+    ctx.try_shutdown()

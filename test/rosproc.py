@@ -1,5 +1,7 @@
-"""Helpers for tests that run ROS 2 nodes as separate processes: a process in its own process group
-with its output collected, waiting on output lines, signalling the group, and the environment."""
+"""Helpers for tests that run ROS 2 nodes: a domain id per test, the environment of a node process, a
+process in its own process group with its output collected, waiting on output lines, signalling the group;
+for nodes in the test's own process, spinning an executor until a condition holds (the ``ros`` fixture,
+a fresh rclpy Context on its own domain, is in conftest.py)."""
 from __future__ import annotations
 
 import itertools
@@ -19,6 +21,21 @@ def domain_id() -> int:
     """A ROS_DOMAIN_ID (1..232) unlikely to be used by a concurrent test run or another test here
     (offset from test_nodes' ids)."""
     return 1 + (os.getpid() * 11 + 117 + next(_ids) * 3) % 232
+
+
+def spin_until(executor, cond, timeout: float = 20.0, what: str = "condition"):
+    """Spin ``executor`` until ``cond()`` is true; AssertionError naming ``what`` after ``timeout`` s."""
+    deadline = time.monotonic() + timeout
+    while not cond():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+        executor.spin_once(timeout_sec=0.02)
+
+
+def wait_future(executor, future, timeout: float = 20.0, what: str = "service response"):
+    """Spin until an rclpy future is done and return its result."""
+    spin_until(executor, future.done, timeout=timeout, what=what)
+    return future.result()
 
 
 def ros_env(domain: int, base: Optional[dict] = None, **extra) -> dict:

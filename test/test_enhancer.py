@@ -3,9 +3,7 @@ to end as `uw-sil launch forward` on a tiny synthetic bag.
 
 Every test that touches DDS uses its own ROS_DOMAIN_ID and ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST.
 """
-import itertools
 import json
-import os
 import subprocess
 import sys
 import threading
@@ -37,31 +35,11 @@ from uw_sil.sim.optics import degrade  # noqa: E402
 from uw_sil.sim.params import UnderwaterParams  # noqa: E402
 from uw_sil.sim.scene import facing_pose  # noqa: E402
 
+from rosproc import domain_id, ros_env, spin_until  # noqa: E402
+
 CAM = CameraModel.from_fov(160, 120, 70.0)
 TRUTH = UnderwaterParams(a=(0.40, 0.12, 0.08), b=(0.07, 0.33, 0.43), rho_f=0.10)
 TIMEOUT = 20.0
-_ids = itertools.count(100)
-
-
-def _domain_id() -> int:
-    return 1 + (os.getpid() * 13 + next(_ids)) % 232
-
-
-@pytest.fixture
-def ros(monkeypatch):
-    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    ctx = Context()
-    rclpy.init(context=ctx, domain_id=_domain_id())
-    yield ctx
-    ctx.try_shutdown()
-
-
-def spin_until(ex, cond, timeout=TIMEOUT, what="condition"):
-    deadline = time.monotonic() + timeout
-    while not cond():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
-        ex.spin_once(timeout_sec=0.02)
 
 
 @pytest.fixture(scope="module")
@@ -285,10 +263,8 @@ def test_forward_graph_replays_a_trial_and_enhances_every_frame(tmp_path, monkey
     from uw_sil.fit.backward import write_params_yaml
 
     write_params_yaml(fit, TRUTH, fog="exp2")
-    domain = _domain_id()
-    env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
-               PYOPENGL_PLATFORM="osmesa")
-    env.pop("FASTDDS_DEFAULT_PROFILES_FILE", None)
+    domain = domain_id()
+    env = ros_env(domain)
     monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     ctx = Context()
     rclpy.init(context=ctx, domain_id=domain)

@@ -15,7 +15,6 @@ rclpy = import_or_skip("rclpy", reason="ROS 2 Python packages (the `ros` extra) 
 pytestmark = pytest.mark.filterwarnings("ignore:module 'sre_:DeprecationWarning")
 
 from rcl_interfaces.msg import ParameterType  # noqa: E402
-from rclpy.context import Context  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
@@ -27,33 +26,11 @@ from uw_sil.sim.camera import CameraModel  # noqa: E402
 from uw_sil.sim.params import RGB_NAMES  # noqa: E402
 from uw_sil.sim.scene import facing_pose  # noqa: E402
 
-from rosproc import domain_id  # noqa: E402
+from rosproc import spin_until, wait_future  # noqa: E402
 
 SMALL = CameraModel.from_fov(160, 120, 70.0)
 TIMEOUT = 15.0
 ROS_OWN = {"use_sim_time", "start_type_description_service"}    # declared by rclpy itself
-
-
-@pytest.fixture
-def ros(monkeypatch):
-    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    ctx = Context()
-    rclpy.init(context=ctx, domain_id=domain_id())
-    yield ctx
-    ctx.try_shutdown()
-
-
-def spin_until(executor, cond, timeout=TIMEOUT, what="condition"):
-    deadline = time.monotonic() + timeout
-    while not cond():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
-        executor.spin_once(timeout_sec=0.05)
-
-
-def call(executor, future, what="service response"):
-    spin_until(executor, future.done, what=what)
-    return future.result()
 
 
 @pytest.fixture(scope="module")
@@ -123,7 +100,7 @@ def test_bag_play_string_arrays_have_a_value(ros, small_bag):
     try:
         assert client.wait_for_services(timeout_sec=TIMEOUT)
         names = ["topics", "wait_for_topics", "wait_for_nodes", "bag", "rate"]
-        values = call(ex, client.get_parameters(names)).values
+        values = wait_future(ex, client.get_parameters(names)).values
         assert [v.type for v in values[:3]] == [ParameterType.PARAMETER_STRING_ARRAY] * 3
         assert [list(v.string_array_value) for v in values[:3]] == [[], [], ["backward_fit"]]
         assert values[3].string_value == str(small_bag) and values[4].double_value == 1.0
@@ -157,7 +134,7 @@ def test_sim_camera_batch_with_a_bad_last_entry_changes_nothing(ros):
         for last, why in ((Parameter("b_g", value=1.5), "out of range"),           # the descriptor's range
                           (Parameter("fog_mode", value="bogus"), "bogus"),         # the node's own check
                           (Parameter("width", value=320), "read-only")):
-            result = call(ex, client.set_parameters_atomically(good + [last])).result
+            result = wait_future(ex, client.set_parameters_atomically(good + [last])).result
             assert not result.successful and why in result.reason, result.reason
         # the on-set callback alone (without rclpy's checks in front): a valid fog mode first, then an
         # invalid noise value must not leave the fog mode changed
@@ -168,7 +145,7 @@ def test_sim_camera_batch_with_a_bad_last_entry_changes_nothing(ros):
         np.testing.assert_array_equal(sim.sim.render(T).image_uint8(), before_image)
 
         # the same batch without the bad entry applies whole
-        result = call(ex, client.set_parameters_atomically(good)).result
+        result = wait_future(ex, client.set_parameters_atomically(good)).result
         assert result.successful, result.reason
         assert sim.sim.fog == "exp" and sim.sim.noise_sigma == 2.0 and sim.sim.params.a[0] == 0.9
     finally:
@@ -208,18 +185,18 @@ def test_backward_fit_checks_parameters_when_set_and_survives_start(ros):
                          (Parameter("sim_node", value="other"), "read-only"),
                          (Parameter("exit_when_done", value=True), "read-only"),
                          (Parameter("frames", value="3"), "type")):
-            r = call(ex, client.set_parameters([bad])).results[0]
+            r = wait_future(ex, client.set_parameters([bad])).results[0]
             assert not r.successful and why in r.reason, (bad.name, r.reason)
-        values = call(ex, client.get_parameters(["frames", "optimizer", "channels"])).values
+        values = wait_future(ex, client.get_parameters(["frames", "optimizer", "channels"])).values
         assert (values[0].integer_value, values[1].string_value, values[2].string_value) == (3, "pso", "HSV")
-        ok = call(ex, client.set_parameters([Parameter("frames", value=2), Parameter("optimizer", value="cmaes"),
+        ok = wait_future(ex, client.set_parameters([Parameter("frames", value=2), Parameter("optimizer", value="cmaes"),
                                              Parameter("channels", value="hs")])).results
         assert all(r.successful for r in ok), [r.reason for r in ok]
-        resp = call(ex, start.call_async(Trigger.Request()))
+        resp = wait_future(ex, start.call_async(Trigger.Request()))
         assert resp.success and resp.message == "collecting frames"
         assert fit.selector is not None and fit.selector.k == 2
         # a collection is running, no fit: a second ~/start restarts the collection (nothing to refuse)
-        assert call(ex, start.call_async(Trigger.Request())).success
+        assert wait_future(ex, start.call_async(Trigger.Request())).success
     finally:
         ex.shutdown()
         fit.destroy_node()

@@ -4,8 +4,6 @@ end to end as `uw-sil launch` subprocesses on a tiny synthetic bag.
 Every test that touches DDS uses its own ROS_DOMAIN_ID and ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST.
 """
 import importlib.util
-import itertools
-import os
 import signal
 import struct
 import subprocess
@@ -47,39 +45,12 @@ from uw_sil.sim.simcam import SimCamera  # noqa: E402
 from uw_sil.bags.synth import synthesize_trial  # noqa: E402
 from uw_sil.sim.transforms import matrix_to_pose  # noqa: E402
 
+from rosproc import domain_id, ros_env, spin_until, wait_future  # noqa: E402
+
 SMALL = CameraModel.from_fov(160, 120, 70.0)
 TRUTH = UnderwaterParams(a=(0.40, 0.12, 0.08), b=(0.07, 0.33, 0.43), rho_f=0.10)
 TIMEOUT = 15.0
 MAX_ITER = 30
-_ids = itertools.count()
-
-
-def _domain_id() -> int:
-    """A ROS_DOMAIN_ID (1..232) unlikely to be used by a concurrent test run or another test here."""
-    return 1 + (os.getpid() * 11 + next(_ids)) % 232
-
-
-@pytest.fixture
-def ros(monkeypatch):
-    """A fresh rclpy Context on its own domain; shut down afterwards."""
-    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    ctx = Context()
-    rclpy.init(context=ctx, domain_id=_domain_id())
-    yield ctx
-    ctx.try_shutdown()
-
-
-def spin_until(executor, cond, timeout=TIMEOUT, what="condition"):
-    deadline = time.monotonic() + timeout
-    while not cond():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
-        executor.spin_once(timeout_sec=0.05)
-
-
-def wait_future(executor, fut, what="service response"):
-    spin_until(executor, fut.done, what=what)
-    return fut.result()
 
 
 def _stamp_ns(msg) -> int:
@@ -341,13 +312,6 @@ def test_bag_play_rejects_missing_topics_and_types(ros, trial, tmp_path):
 # ------------------------------------------------------------------------------------------ the graph
 
 
-def _launch_env(domain: int) -> dict:
-    env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
-               PYOPENGL_PLATFORM="osmesa")
-    env.pop("FASTDDS_DEFAULT_PROFILES_FILE", None)
-    return env
-
-
 def _pump(proc, lines):
     for line in iter(proc.stdout.readline, ""):
         lines.append(line)
@@ -355,12 +319,12 @@ def _pump(proc, lines):
 
 def test_backward_graph_refits_sim_camera_and_stops_on_ctrl_c(trial, tmp_path, monkeypatch):
     """bag_play -> backward_fit -> sim_camera re-parameterized; then SIGINT ends everything cleanly."""
-    domain = _domain_id()
+    domain = domain_id()
     fit_yaml = tmp_path / "fit.yaml"
     cmd = [sys.executable, "-m", "uw_sil.cli", "launch", "backward", "--bag", str(trial), "--frames", "3",
            "--stride", "4", "--optimizer", "cmaes", "--max-iter", str(MAX_ITER), "--output-yaml", str(fit_yaml),
            "--keep-running"]
-    proc = subprocess.Popen(cmd, env=_launch_env(domain), stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+    proc = subprocess.Popen(cmd, env=ros_env(domain), stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                             text=True)
     lines = []
     reader = threading.Thread(target=_pump, args=(proc, lines), daemon=True)
@@ -426,7 +390,7 @@ def test_backward_graph_with_a_bag_ends_by_itself(trial, tmp_path):
     fit_yaml = tmp_path / "fit.yaml"
     cmd = [sys.executable, "-m", "uw_sil.cli", "launch", "backward", "--bag", str(trial), "--frames", "10",
            "--stride", "4", "--optimizer", "cmaes", "--max-iter", "3", "--output-yaml", str(fit_yaml), "--rate", "2"]
-    out = subprocess.run(cmd, env=_launch_env(_domain_id()), capture_output=True, text=True, timeout=90)
+    out = subprocess.run(cmd, env=ros_env(domain_id()), capture_output=True, text=True, timeout=90)
     text = out.stdout + out.stderr
     assert out.returncode == 0, text
     assert "fitting the 3 of 10 frames taken so far" in text, text
@@ -441,7 +405,7 @@ def test_play_command_ends_with_the_bag(trial):
     """`uw-sil play` replays the bag and returns when it is done (no subscriber needed)."""
     t0 = time.monotonic()
     out = subprocess.run([sys.executable, "-m", "uw_sil.cli", "play", str(trial), "--rate", "4"],
-                         env=_launch_env(_domain_id()), capture_output=True, text=True, timeout=60)
+                         env=ros_env(domain_id()), capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stdout + out.stderr
     # 12 frames x (image, camera_info, pose, tf); /tf is skipped (with a warning) when tf2_msgs is missing
     tf = importlib.util.find_spec("tf2_msgs") is not None
