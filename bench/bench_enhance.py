@@ -11,7 +11,7 @@ Last line: ``enhance 640x480, 1 thread: sil=... ms (...) dcp=... ms udcp=... ms 
 """
 import argparse
 import os
-import time
+import sys
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 
@@ -22,26 +22,14 @@ from uw_sil.enhance.dcp import dehaze_dcp  # noqa: E402
 from uw_sil.enhance.features import ALL_DESCRIPTORS, match_features  # noqa: E402
 from uw_sil.metrics.uiqm import uciqe, uiqm  # noqa: E402
 
-try:  # after the move to subpackages
-    from uw_sil.sim.optics import degrade  # noqa: E402
-    from uw_sil.sim.render import Renderer  # noqa: E402
-    from uw_sil.sim.scene import facing_pose  # noqa: E402
-except ImportError:
-    from uw_sil.sim.optics import degrade  # noqa: E402
-    from uw_sil.sim.render import Renderer  # noqa: E402
-    from uw_sil.sim.scene import facing_pose  # noqa: E402
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from bench_core import median_ms  # noqa: E402  -- warm-up run, then the median of n
+
+from uw_sil.sim.optics import degrade  # noqa: E402
+from uw_sil.sim.render import Renderer  # noqa: E402
+from uw_sil.sim.scene import facing_pose  # noqa: E402
 
 PARAMS = [0.4, 0.1, 0.08, 0.06, 0.3, 0.4, 0.08]
-
-
-def median_ms(fn, n):
-    fn()
-    ts = []
-    for _ in range(n):
-        t = time.perf_counter()
-        fn()
-        ts.append(time.perf_counter() - t)
-    return 1e3 * float(np.median(ts))
 
 
 def frames():

@@ -37,6 +37,9 @@ from uw_sil.sim.render import Renderer  # noqa: E402
 from uw_sil.sim.scene import facing_pose  # noqa: E402
 from uw_sil.sim.simcam import SimCamera  # noqa: E402
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from bench_recovery import errors, random_truth  # noqa: E402  -- the same truths and recovery criterion
+
 
 def pose_error(T, T_true):
     dR = T_true[:3, :3].T @ T[:3, :3]
@@ -92,22 +95,6 @@ def part_pose(args, cam):
     for e in est.values():
         e.close()
     return median_2m
-
-
-def random_truth(rng):
-    from uw_sil.sim.params import UnderwaterParams
-
-    a = (rng.uniform(0.25, 0.6), rng.uniform(0.06, 0.2), rng.uniform(0.05, 0.15))
-    b = (rng.uniform(0.02, 0.12), rng.uniform(0.2, 0.45), rng.uniform(0.3, 0.55))
-    return UnderwaterParams(a, b, rng.uniform(0.03, 0.2))
-
-
-def errors(params, truth):
-    got, want = params.as_vector(), truth.as_vector()
-    rel_a = np.abs(got[:3] - want[:3]) / want[:3]
-    abs_b = np.abs(got[3:6] - want[3:6])
-    rel_rho = abs(got[6] - want[6]) / want[6]
-    return rel_a, abs_b, rel_rho, bool((rel_a <= 0.05).all() and (abs_b <= 0.01).all() and rel_rho <= 0.10)
 
 
 def part_fit(args, cam):
