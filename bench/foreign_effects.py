@@ -249,7 +249,7 @@ def unmodeled_geometry(strength: str):
         col = alb * np.clip(tex, 0.05, 1.0)[..., None] * np.array([1.0, 0.92, 0.75])
         a = np.asarray(ctx.params.a, np.float32)
         b = np.asarray(ctx.params.b, np.float32)
-        Tr = np.exp(-s[..., None] * a)
+        Tr = np.exp(-np.minimum(s, 1e3)[..., None] * a)        # s is inf where no ray meets the seabed
         floor = b + Tr * (col - b)
         ctx.img = np.where(ok[..., None], floor, ctx.img).astype(np.float32)
     return eff

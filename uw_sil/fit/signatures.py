@@ -585,7 +585,9 @@ def noise_statistics(Y: np.ndarray, S: np.ndarray, hit: np.ndarray,
         ok = n >= 0.5 * block.shape[axis]
         if ok.sum() < 20:
             return 1.0
-        med = np.nanmedian(np.where(keep, block, np.nan), axis=axis)[ok]
+        vals = np.where(keep, block, np.nan)
+        vals = vals[:, ok] if axis == 0 else vals[ok]           # lines with too few pixels left are skipped
+        med = np.nanmedian(vals, axis=axis)
         return float(np.var(med) / np.mean(np.pi / 2 * sig2 / n[ok]))
 
     rows_w = open_water.all(axis=1)
