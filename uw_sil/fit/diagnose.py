@@ -715,7 +715,10 @@ def diagnose_frames(frames: list, fog: str = "exp2", seed: int = 0, max_candidat
                              delta_heldout=float((r["held_pf"] - ref_held_pf).mean()),
                              params=_effect_flat(r["params"], ["sensor_noise"]), margin=r["margin"],
                              heldout_statistic=st, rejudged_without=lead_geo)
-            if not st["improvement"] > st["margin"]:
+            if st["improvement"] > st["margin"]:
+                rank["sensor_noise"] = (0.4 * min(1.0, st["improvement"] / max(3 * st["margin"], 1e-9))
+                                        + 0.6 * min(1.0, scores["sensor_noise"] / 10.0))
+            else:
                 stat_accepted.remove("sensor_noise")
     if final_effects:
         # next to an effect that changes the expected image, a noise model is kept only if it does not lower
@@ -918,10 +921,11 @@ def _noise_refit(fit_f, held_f, base_x, sig, fog, seed, ref_held_pf, base_theta_
                  exclude: Optional[dict] = None) -> dict:
     """Sensor noise, fitted and judged at full resolution by noise statistics (it is new in every frame).
 
-    The effect's parameters (shot gain, read noise, correlation, fixed pattern) are chosen by CMA-ES on the
+    The effect's parameters (shot gain, read noise, correlation, fixed patterns) are chosen by CMA-ES on the
     fit frames so that simulated frames reproduce the recording's noise statistics
     (:func:`uw_sil.fit.signatures.noise_statistics`: water sigma, lag-1/lag-3 ratio, column and row
-    patterns, sigma on flat object parts). On held-out frames the distance between the recording's
+    patterns, sigma on flat object parts; the recording's particles and, with ``exclude`` ({id(frame): mask}),
+    surfaces another effect adds are left out). On held-out frames the distance between the recording's
     statistics and the simulation's is compared for the base model (constant Gaussian noise estimated on
     the water, as the backward fit adds) and the candidate. θ is measured on the held-out frames at full
     resolution for both; the candidate's θ is reported as the base reference plus that difference."""
@@ -950,10 +954,10 @@ def _noise_refit(fit_f, held_f, base_x, sig, fog, seed, ref_held_pf, base_theta_
             real.append(noise_statistics(Y, Ys, hit, excl))
         return rfs, S, real, hits
 
-    def stats_of(img255, S, hit):
+    def stats_of(img255, S, pix):
         np.clip(img255, 0, 255, out=img255)
         np.rint(img255, out=img255)
-        return noise_statistics(luminance(img255), luminance(S), *hit)
+        return noise_statistics(luminance(img255), luminance(S), *pix)
 
     def dist(a, b):
         if a is None or b is None:
