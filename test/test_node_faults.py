@@ -221,7 +221,7 @@ def test_sigkill_of_backward_fit_mid_fit_loses_nothing(trial, sim_params, tmp_pa
                                stride=4, optimizer="cmaes", max_iter=3, keep_running=True)
         procs.update(_start(quick, domain, names={"backward_fit", "bag_play"}))
         spin_until(ex, lambda: any(s.startswith(("done", "failed")) for s in watcher.status), START,
-                    "the restarted fit")
+                   "the restarted fit")
         assert watcher.status[-1].startswith("done") and "re-parameterized" in watcher.status[-1], watcher.status
         fitted = yaml.safe_load(out_yaml.read_text())["/**"]["ros__parameters"]
         assert _sim_values(ex, watcher) == {n: fitted[n] for n in RGB_NAMES} != sim_values
