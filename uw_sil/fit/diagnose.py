@@ -621,6 +621,20 @@ def diagnose_frames(frames: list, fog: str = "exp2", seed: int = 0, max_candidat
     def margin_for(d_pf):
         return max(MIN_MARGIN, 2.0 * _bootstrap_se(d_pf, seed=seed))
 
+    def candidate_entry(eff, r, m):
+        """The JSON candidate of a single-effect refit ``r`` with its noise margin ``m``."""
+        entry = {"effect": eff, "theta_train": r["theta_train"], "theta_heldout": float(r["held_pf"].mean()),
+                 "delta_heldout": float((r["held_pf"] - ref_held_pf).mean()),
+                 "params": _effect_flat(r["params"], [eff]), "margin": m, "screen_score": scores[eff]}
+        if "statistic" in r:
+            entry["heldout_statistic"] = r["statistic"]
+        return entry
+
+    def stat_rank(e):
+        """Rank of an effect accepted on its held-out statistic: how clearly it improved, and its signature."""
+        st = fits[e]["statistic"]
+        return 0.4 * min(1.0, st["improvement"] / max(3 * st["margin"], 1e-9)) + 0.6 * min(1.0, scores[e] / 10.0)
+
     b_held = float(ref_held_pf.mean())
     accepted, stat_accepted = [], []
     for eff in cands:
@@ -628,22 +642,17 @@ def diagnose_frames(frames: list, fog: str = "exp2", seed: int = 0, max_candidat
         d_pf = r["held_pf"] - ref_held_pf
         m = margin_for(d_pf)
         r["margin"] = m
-        entry = {"effect": eff, "theta_train": r["theta_train"], "theta_heldout": float(r["held_pf"].mean()),
-                 "delta_heldout": float(d_pf.mean()), "params": _effect_flat(r["params"], [eff]),
-                 "margin": m, "screen_score": scores[eff]}
+        candidates.append(candidate_entry(eff, r, m))
         if eff in STATISTICAL:
-            # random effects (new particles every frame) cannot raise a pixel-wise θ: they are judged by how
-            # well the fitted model reproduces the held-out frames' statistic, and must not lower θ
+            # random effects (particles, noise at random places) cannot be matched pixel by pixel: judged by how
+            # well the fitted model reproduces the held-out frames' statistic (θ is reported); pose error also
+            # must not lower θ
             st = r["statistic"]
-            entry["heldout_statistic"] = st
-            # random effects (particles, noise at random places) cannot be matched pixel by pixel: judged by their
-            # statistics only (θ is reported); pose error must not lower θ
             theta_ok = eff in ("marine_snow", "sensor_noise") or d_pf.mean() > -m
             if (st["improvement"] > st["margin"] and theta_ok) or (eff == "pose_error" and d_pf.mean() > m):
                 stat_accepted.append(eff)
         elif d_pf.mean() > m:
             accepted.append(eff)
-        candidates.append(entry)
     # which accepted effect leads: its held-out gain relative to the best gain, and how specific and strong
     # its residual signature is (a trial-level pose correction cannot undo per-frame pose jitter, which a
     # blur then partly hides: the edge-shift signature still says which physics it is)
@@ -651,8 +660,7 @@ def diagnose_frames(frames: list, fog: str = "exp2", seed: int = 0, max_candidat
     gmax = max(gains.values()) if gains else 1.0
     rank = {e: 0.4 * gains[e] / gmax + 0.6 * min(1.0, scores[e] / 10.0) for e in accepted}
     for e in stat_accepted:
-        st = fits[e]["statistic"]
-        rank[e] = 0.4 * min(1.0, st["improvement"] / max(3 * st["margin"], 1e-9)) + 0.6 * min(1.0, scores[e] / 10.0)
+        rank[e] = stat_rank(e)
     accepted.sort(key=lambda e: -rank[e])
     if len(accepted) >= 2:
         # the held-out frames have the last word: a lower-ranked effect that beats the leading one on them by
@@ -709,15 +717,10 @@ def diagnose_frames(frames: list, fog: str = "exp2", seed: int = 0, max_candidat
                                                     ref_held_pf, base_fit.theta_train, exclude=extra)
             r["margin"] = margin_for(r["held_pf"] - ref_held_pf)
             st = r["statistic"]
-            for c in candidates:
-                if c["effect"] == "sensor_noise":
-                    c.update(theta_heldout=float(r["held_pf"].mean()),
-                             delta_heldout=float((r["held_pf"] - ref_held_pf).mean()),
-                             params=_effect_flat(r["params"], ["sensor_noise"]), margin=r["margin"],
-                             heldout_statistic=st, rejudged_without=lead_geo)
+            k = next(i for i, c in enumerate(candidates) if c["effect"] == "sensor_noise")
+            candidates[k] = {**candidate_entry("sensor_noise", r, r["margin"]), "rejudged_without": lead_geo}
             if st["improvement"] > st["margin"]:
-                rank["sensor_noise"] = (0.4 * min(1.0, st["improvement"] / max(3 * st["margin"], 1e-9))
-                                        + 0.6 * min(1.0, scores["sensor_noise"] / 10.0))
+                rank["sensor_noise"] = stat_rank("sensor_noise")
             else:
                 stat_accepted.remove("sensor_noise")
     if final_effects:
