@@ -401,7 +401,7 @@ def test_ros2_tools_on_the_running_graph(ws, trial, tmp_path):
     rate = 1.5
     launch = ws.start(domain, "launch", "uw_sil", "backward.launch.py", f"bag:={trial}", "loop:=true",
                       f"rate:={rate}", "keep_running:=true", "max_iter:=3", "optimizer:=cmaes")
-    copies = []
+    copies, hz = [], None
     try:
         for pattern in (r"\[sim_camera\]: ready", r"\[bag_play\]: .* playing at rate", r"\[backward_fit\]: done"):
             launch.wait_for(pattern, timeout=START)
@@ -459,6 +459,8 @@ def test_ros2_tools_on_the_running_graph(ws, trial, tmp_path):
         for n, d in zip(NODES, again):
             assert yaml.safe_load(d.stdout)[f"/{n}"]["ros__parameters"] == dumped[n], (n, d.stdout)
     finally:
+        if hz is not None:
+            hz.stop()                  # already ended on the normal path; a failed assertion must not leak it
         for c in copies:
             c.stop()
         # Ctrl-C in the terminal: SIGINT to the process group; ros2 launch forwards another one to each node
