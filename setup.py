@@ -67,10 +67,10 @@ setup(
         "console_scripts": [
             "uw-sil = uw_sil.cli:main",
             # ROS 2 nodes (`ros2 run uw_sil <name>` in a workspace; plain commands in a venv)
-            "sim_camera = uw_sil.nodes.sim_camera:main",
-            "backward_fit = uw_sil.nodes.backward_fit:main",
-            "bag_play = uw_sil.nodes.bag_play:main",
-            "enhancer = uw_sil.nodes.enhancer:main",
+            "sim_camera = uw_sil.nodes.entry:sim_camera",
+            "backward_fit = uw_sil.nodes.entry:backward_fit",
+            "bag_play = uw_sil.nodes.entry:bag_play",
+            "enhancer = uw_sil.nodes.entry:enhancer",
         ],
     },
 )

@@ -1,6 +1,6 @@
 """ros2 launch uw_sil backward.launch.py [bag:=trial.mcap] [output_yaml:=fit.yaml] [frames:=3] [optimizer:=pso]
                                          [stride:=N] [max_iter:=N] [rate:=1.0] [loop:=false] [keep_running:=false]
-                                         [sim_params:=sim_camera.yaml]
+                                         [start_paused:=false] [sim_params:=sim_camera.yaml]
 
 Starts sim_camera and backward_fit (and bag_play when a bag is given): at dive start the first frames
 are fitted and the simulated camera is re-parameterized through its parameter services. With a bag the

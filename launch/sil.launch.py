@@ -1,6 +1,7 @@
 """ros2 launch uw_sil sil.launch.py [bag:=trial.mcap] [output_yaml:=fit.yaml] [frames:=3] [optimizer:=pso]
                                     [stride:=N] [max_iter:=N] [method:=sil] [b_from_frame:=false] [rate:=1.0]
-                                    [loop:=false] [keep_running:=false] [sim_params:=sim_camera.yaml]
+                                    [loop:=false] [keep_running:=false] [start_paused:=false]
+                                    [sim_params:=sim_camera.yaml]
 
 Both halves of the paper: sim_camera, backward_fit (fits the first frames and re-parameterizes sim_camera)
 and the enhancer (follows sim_camera's parameters and publishes camera/image_enhanced), plus bag_play when a

@@ -24,6 +24,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile  # noqa: E402
 from geometry_msgs.msg import PoseStamped  # noqa: E402
 from sensor_msgs.msg import CameraInfo, Image  # noqa: E402
 from std_msgs.msg import Header, String  # noqa: E402
+from std_srvs.srv import Trigger  # noqa: E402
 
 from uw_sil.bags import iter_messages  # noqa: E402
 from uw_sil.bags.imgmsg import depth_to_image_fields, image_to_rgb, rgb_to_image_fields  # noqa: E402
@@ -35,7 +36,7 @@ from uw_sil.sim.optics import degrade  # noqa: E402
 from uw_sil.sim.params import UnderwaterParams  # noqa: E402
 from uw_sil.sim.scene import facing_pose  # noqa: E402
 
-from rosproc import domain_id, ros_env, spin_until  # noqa: E402
+from rosproc import domain_id, ros_env, spin_until, wait_future  # noqa: E402
 
 CAM = CameraModel.from_fov(160, 120, 70.0)
 TRUTH = UnderwaterParams(a=(0.40, 0.12, 0.08), b=(0.07, 0.33, 0.43), rho_f=0.10)
@@ -254,7 +255,9 @@ def test_queue_is_bounded_drops_the_oldest_and_counts(graph, frame):
 
 def test_forward_graph_replays_a_trial_and_enhances_every_frame(tmp_path, monkeypatch):
     """`uw-sil launch forward --bag`: one enhanced frame per recorded frame, with its stamp; the graph ends
-    by itself after the bag (the enhancer is required and exits when idle)."""
+    by itself after the bag (the enhancer is required and exits when idle). The replay starts paused and is
+    resumed once this watcher has matched the enhancer's publisher, as a recorder of the enhanced stream
+    would: without that the frames sent before discovery were lost to it (3.6 s late in a loaded run)."""
     bag = tmp_path / "trial.mcap"
     synthesize_trial(bag, n_frames=12, seed=3, params=TRUTH, camera=CAM, start_m=3.0, end_m=1.2)
     stamps = sorted(m.header.stamp.sec * 10**9 + m.header.stamp.nanosec
@@ -270,16 +273,20 @@ def test_forward_graph_replays_a_trial_and_enhances_every_frame(tmp_path, monkey
     rclpy.init(context=ctx, domain_id=domain)
     node = Node("watcher", context=ctx)
     got = {}
-    node.create_subscription(Image, "/camera/image_enhanced", lambda m: got.__setitem__(_ns(m), m), 50)
+    sub = node.create_subscription(Image, "/camera/image_enhanced", lambda m: got.__setitem__(_ns(m), m), 50)
+    resume = node.create_client(Trigger, "/bag_play/resume")
     ex = SingleThreadedExecutor(context=ctx)
     ex.add_node(node)
     proc = subprocess.Popen([sys.executable, "-m", "uw_sil.cli", "launch", "forward", "--bag", str(bag),
-                             "--sim-params", str(fit), "--rate", "2"], env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True)
+                             "--sim-params", str(fit), "--rate", "2", "--start-paused"], env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     lines = []
     reader = threading.Thread(target=lambda: lines.extend(iter(proc.stdout.readline, "")), daemon=True)
     reader.start()
     try:
+        spin_until(ex, lambda: sub.get_publisher_count() > 0 and resume.service_is_ready(), timeout=120,
+                   what="the enhancer's publisher and bag_play's ~/resume")
+        assert wait_future(ex, resume.call_async(Trigger.Request())).success
         spin_until(ex, lambda: proc.poll() is not None, timeout=120, what="the forward graph to end")
         for _ in range(20):
             ex.spin_once(timeout_sec=0.02)

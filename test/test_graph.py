@@ -45,8 +45,8 @@ def test_command_line_quotes_values_as_yaml():
                                 "x": 0.5, "topics": ["/a", "/b"]},
                     remappings=[("in", "out")])
     cmd = graph.command_line(spec, python="/py")
-    assert cmd[:3] == ["/py", "-m", "uw_sil.nodes.bag_play"]
-    args = cmd[3:]
+    assert cmd[:4] == ["/py", "-m", "uw_sil.nodes.entry", "bag_play"]
+    args = cmd[4:]
     assert args[:4] == ["--ros-args", "-r", "__node:=player", "--params-file"]
     p = [args[i + 1] for i, a in enumerate(args) if a == "-p"]
     # strings stay strings (quoted), even when they look like YAML booleans or are empty
@@ -65,10 +65,10 @@ def test_share_file_finds_the_fastdds_profile():
 # ------------------------------------------------------------------------------------------ launcher
 
 FAKE_PYTHON = r"""#!/bin/bash
-# Stands in for `python -m uw_sil.nodes.NAME --ros-args ...`: behaves according to NAME. A long-running
+# Stands in for `python -m uw_sil.nodes.entry NAME --ros-args ...`: behaves according to NAME. A long-running
 # node creates the file $READY once its signal traps are set; quick and fail wait for it (when READY is
 # set), so the launcher never signals a node that has not yet installed its traps, however busy the machine.
-name="${2#uw_sil.nodes.}"
+name="$3"
 echo "profile=$FASTDDS_DEFAULT_PROFILES_FILE"
 echo -n "partial line without newline"; echo " completed"
 wait_ready() { if [ -n "$READY" ]; then while [ ! -e "$READY" ]; do sleep 0.02; done; fi; }
@@ -246,6 +246,20 @@ def test_graph_arguments_describe_themselves():
     assert BACKWARD.argument("rate").help == "bag replay rate (2: twice as fast as recorded) (a number > 0; default 1.0)"
     with pytest.raises(KeyError, match="no argument"):
         BACKWARD.argument("nope")
+
+
+@pytest.mark.parametrize("name", ["backward", "forward", "sil"])
+def test_start_paused_replays_wait_for_resume(name):
+    """start_paused:=true: bag_play waits for ~/resume; backward_fit does not give up on its first frame
+    meanwhile (its first_frame_timeout would otherwise fail the fit while the user sets up a recorder)."""
+    g = graph.GRAPHS[name]
+    paused = {s.name: s for s in g.nodes({"bag": "/d/t.mcap", "start_paused": "true"})}
+    plain = {s.name: s for s in g.nodes({"bag": "/d/t.mcap"})}
+    assert paused["bag_play"].parameters["start_paused"] is True
+    assert "start_paused" not in plain["bag_play"].parameters
+    if "backward_fit" in paused:
+        assert plain["backward_fit"].parameters["first_frame_timeout"] == graph.FIRST_FRAME_TIMEOUT > 0
+        assert paused["backward_fit"].parameters["first_frame_timeout"] == 0.0
 
 
 def test_graph_nodes_come_from_the_arguments():

@@ -138,8 +138,9 @@ def _console_scripts():
 
 @pytest.mark.parametrize("script,module,func", _console_scripts())
 def test_entry_points_start(script, module, func):
-    """Every console script's module runs its ``--help`` path (nodes print their topics and parameters)."""
-    out = subprocess.run([sys.executable, "-m", module, "--help"], capture_output=True, text=True, timeout=60,
+    """Every console script's function runs its ``--help`` path (nodes print their topics and parameters)."""
+    code = f"import sys; from {module} import {func}; sys.argv = [{script!r}, '--help']; sys.exit({func}())"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
                          cwd=ROOT, env={**os.environ, "PYOPENGL_PLATFORM": "osmesa"})
     assert out.returncode == 0, out.stderr
     assert "usage" in out.stdout.lower()

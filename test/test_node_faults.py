@@ -98,6 +98,25 @@ def test_every_node_stops_cleanly_on_repeated_signals(trial, sim_params, signals
         _stop_all(procs)
 
 
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["INT", "TERM"])
+def test_a_node_stopped_while_it_imports_ends_cleanly(sig):
+    """When one node fails, ``ros2 launch`` stops the others, and one may still be importing (rclpy, scipy,
+    the renderer: about 1 s here, more under load). A SIGINT inside that import printed a KeyboardInterrupt
+    traceback and the node died with -2 (seen in CI); it must end like a node stopped while running."""
+    code = "import sys; from uw_sil.nodes import entry; print('importing', flush=True); sys.exit(entry.backward_fit())"
+    p = Proc([sys.executable, "-c", code], ros_env(domain_id()), name="backward_fit")
+    try:
+        p.wait_for("importing", timeout=START)
+        time.sleep(0.05)
+        p.signal(sig)
+        assert p.wait_group(STOP) < STOP
+        assert p.popen.returncode == 0, p.text
+        assert_clean_output(p.text, "backward_fit")
+        assert "[backward_fit]" not in p.text, "the node had started: the signal did not come during the import"
+    finally:
+        p.stop()
+
+
 @pytest.mark.parametrize("signals", [(signal.SIGINT, signal.SIGINT), (signal.SIGTERM, signal.SIGTERM)],
                          ids=["INT-INT", "TERM-TERM"])
 def test_uw_sil_launch_stops_cleanly_on_repeated_signals(trial, sim_params, signals):

@@ -206,7 +206,7 @@ def test_ros2_launch_ends_with_a_failed_node_and_names_bad_arguments(ws, tmp_pat
     # every launch argument is described
     names = re.findall(r"^    '(\w+)':$", show.stdout, flags=re.M)
     assert set(names) == {"bag", "output_yaml", "sim_params", "frames", "stride", "optimizer", "max_iter", "rate",
-                          "loop", "keep_running"}, show.stdout
+                          "loop", "keep_running", "start_paused"}, show.stdout
     assert "no description given" not in show.stdout
 
 

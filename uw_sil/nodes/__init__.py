@@ -8,6 +8,7 @@ No algorithm lives here: nodes call :mod:`uw_sil.sim`, :mod:`uw_sil.fit`, :mod:`
 """
 from __future__ import annotations
 
+import importlib
 import os
 import re
 import signal
@@ -170,11 +171,7 @@ def run_node(make_node: Callable, spin: Optional[Callable] = None, args=None, na
         print(f"usage: ros2 run uw_sil {name or 'NODE'} [--ros-args -p NAME:=VALUE | --params-file FILE | "
               f"-r FROM:=TO ...]\n\n{doc.strip()}")
         return 0
-    try:   # SIGTERM stops a node like Ctrl-C, also while it starts; both are noted (see _interrupt)
-        for s in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(s, _interrupt)
-    except ValueError:                              # not the main thread: leave signals alone
-        pass
+    _handle_stop_signals()
     try:
         code = _run_node(make_node, spin, args, name, user_errors)
     except KeyboardInterrupt:                       # a signal in the few instructions around the clean-up
@@ -189,6 +186,37 @@ def run_node(make_node: Callable, spin: Optional[Callable] = None, args=None, na
                 pass
         os._exit(code)
     return code
+
+
+#: The node modules under :mod:`uw_sil.nodes` (each a console script of the same name, :mod:`.entry`).
+NODES = ("sim_camera", "backward_fit", "bag_play", "enhancer")
+
+
+def start_node(module: str) -> int:
+    """Import ``uw_sil.nodes.<module>`` and return its ``main()``; 0 when a stop signal came first.
+
+    The stop signals are handled before the import (rclpy, scipy, the renderer: 1-3 s): Ctrl-C or SIGTERM
+    then is a clean stop without a traceback, like one during :func:`run_node` (see :mod:`.entry`)."""
+    if module not in NODES:
+        raise ValueError(f"unknown node {module!r} (one of {', '.join(NODES)})")
+    _handle_stop_signals()
+    try:
+        node_module = importlib.import_module(f"{__name__}.{module}")
+    except BaseException:
+        if not _stop_signals:          # a real import error: show it
+            raise
+        _ignore_signals()
+        return 0
+    return node_module.main()
+
+
+def _handle_stop_signals():
+    """SIGTERM stops a node like Ctrl-C, also while it starts; both are noted (see :func:`_interrupt`)."""
+    try:
+        for s in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(s, _interrupt)
+    except ValueError:                              # not the main thread: leave signals alone
+        pass
 
 
 #: Stop signals this process received (see :func:`_interrupt`).

@@ -120,6 +120,9 @@ class BagPlayNode(Node):
         self._paused_since = time.monotonic() if self.paused else None
         self.create_service(Trigger, "~/pause", self._on_pause)
         self.create_service(Trigger, "~/resume", self._on_resume)
+        if self.paused:
+            self.get_logger().info(f"paused: ros2 service call {self.get_fully_qualified_name()}/resume "
+                                   "std_srvs/srv/Trigger starts the replay")
         self.played = 0
         self._t0_wall = None   # wall time (monotonic) at which bag time start_ns is played
         if g("clock_hz") > 0:

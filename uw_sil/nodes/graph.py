@@ -34,10 +34,6 @@ class NodeSpec:
     arguments: list = field(default_factory=list)        # plain arguments before --ros-args
     required: bool = False                               # the graph ends when this node exits
 
-    @property
-    def module(self) -> str:
-        return f"uw_sil.nodes.{self.executable}"
-
 
 def share_file(*parts: str) -> Path:
     """A file of this package's share directory (config/, launch/), installed or in the source tree."""
@@ -70,7 +66,7 @@ FIRST_FRAME_TIMEOUT = 40.0
 def backward_graph(sim_params: Optional[str] = None, bag: Optional[str] = None, output_yaml: str = "",
                    frames: int = 3, optimizer: str = "pso", rate: float = 1.0, loop: bool = False,
                    max_iter: Optional[int] = None, stride: Optional[int] = None,
-                   keep_running: bool = False) -> list:
+                   keep_running: bool = False, start_paused: bool = False) -> list:
     """sim_camera + backward_fit (+ bag_play replaying a field trial when ``bag`` is given).
 
     With a bag the graph is an offline replay: ``backward_fit`` exits once the fit is done (or has
@@ -78,7 +74,8 @@ def backward_graph(sim_params: Optional[str] = None, bag: Optional[str] = None, 
     camera, everything runs until Ctrl-C and ``sim_camera`` keeps serving the fitted parameters).
     ``bag_play`` starts once ``backward_fit`` subscribes, so no frame is lost to start-up; its end
     does not end the graph. If the bag has fewer usable frames than ``frames``, ``backward_fit``
-    fits those it has ``IDLE_TIMEOUT`` s after the last one.
+    fits those it has ``IDLE_TIMEOUT`` s after the last one. With ``start_paused`` the replay waits for
+    ``bag_play``'s ``~/resume`` (and ``backward_fit`` waits as long as that takes for its first frame).
     """
     sim_params = sim_params or str(share_file("config", "sim_camera.yaml"))
     exit_when_done = bool(bag) and not keep_running
@@ -88,7 +85,7 @@ def backward_graph(sim_params: Optional[str] = None, bag: Optional[str] = None, 
         # the bag may hold fewer usable frames than asked for: fit those once it has ended; and say so
         # when none arrive at all
         fit["idle_timeout"] = IDLE_TIMEOUT
-        fit["first_frame_timeout"] = FIRST_FRAME_TIMEOUT
+        fit["first_frame_timeout"] = 0.0 if start_paused else FIRST_FRAME_TIMEOUT
     if max_iter is not None:
         fit["max_iter"] = int(max_iter)
     if stride is not None:
@@ -98,10 +95,8 @@ def backward_graph(sim_params: Optional[str] = None, bag: Optional[str] = None, 
         NodeSpec("backward_fit", "backward_fit", parameters=fit, required=exit_when_done),
     ]
     if bag:
-        nodes.append(NodeSpec("bag_play", "bag_play", parameters={
-            "bag": str(bag), "rate": float(rate), "loop": bool(loop),
-            "wait_for_topics": [BACKWARD_INPUTS[0], BACKWARD_INPUTS[2]], "wait_for_nodes": ["backward_fit"],
-            "delay": 0.5}))
+        nodes.append(_bag_play(bag, rate, loop, [BACKWARD_INPUTS[0], BACKWARD_INPUTS[2]], ["backward_fit"],
+                               start_paused))
     return nodes
 
 
@@ -120,16 +115,19 @@ def _enhancer(method: str, b_from_frame: bool, idle_exit: bool) -> NodeSpec:
     return NodeSpec("enhancer", "enhancer", parameters=params, required=idle_exit)
 
 
-def _bag_play(bag, rate, loop, wait_for_topics, wait_for_nodes=()) -> NodeSpec:
+def _bag_play(bag, rate, loop, wait_for_topics, wait_for_nodes=(), start_paused=False) -> NodeSpec:
     params = {"bag": str(bag), "rate": float(rate), "loop": bool(loop), "wait_for_topics": list(wait_for_topics),
               "delay": 0.5}
     if wait_for_nodes:
         params["wait_for_nodes"] = list(wait_for_nodes)
+    if start_paused:
+        params["start_paused"] = True
     return NodeSpec("bag_play", "bag_play", parameters=params)
 
 
 def forward_graph(sim_params: Optional[str] = None, bag: Optional[str] = None, rate: float = 1.0, loop: bool = False,
-                  keep_running: bool = False, method: str = "sil", b_from_frame: bool = False) -> list:
+                  keep_running: bool = False, method: str = "sil", b_from_frame: bool = False,
+                  start_paused: bool = False) -> list:
     """sim_camera + enhancer (+ bag_play replaying a field trial when ``bag`` is given): the forward half.
 
     ``sim_params`` is the fitted parameters file (``uw-sil fit --out fit.yaml``; default
@@ -137,7 +135,8 @@ def forward_graph(sim_params: Optional[str] = None, bag: Optional[str] = None, r
     ``keep_running`` or ``loop``) the enhancer exits ``IDLE_TIMEOUT`` s after the last frame and, being
     ``required``, ends the graph. ``bag_play`` starts once its camera and pose publishers have matched the
     enhancer and sim_camera (the enhancer subscribes once it has sim_camera's parameters), so no frame is
-    lost to start-up.
+    lost to start-up. With ``start_paused`` the replay waits for ``bag_play``'s ``~/resume``: time for a
+    recorder or viewer of ``camera/image_enhanced`` to match the enhancer, which the graph cannot wait for.
     """
     sim_params = sim_params or str(share_file("config", "sim_camera.yaml"))
     idle_exit = bool(bag) and not keep_running and not loop
@@ -147,14 +146,14 @@ def forward_graph(sim_params: Optional[str] = None, bag: Optional[str] = None, r
     if bag:
         # without wait_for_nodes bag_play waits for a *matched* reader on each topic: the enhancer on the
         # camera, sim_camera on the poses (both are the only readers in this graph)
-        nodes.append(_bag_play(bag, rate, loop, [FORWARD_INPUT, BACKWARD_INPUTS[2]]))
+        nodes.append(_bag_play(bag, rate, loop, [FORWARD_INPUT, BACKWARD_INPUTS[2]], start_paused=start_paused))
     return nodes
 
 
 def sil_graph(sim_params: Optional[str] = None, bag: Optional[str] = None, output_yaml: str = "", frames: int = 3,
               optimizer: str = "pso", rate: float = 1.0, loop: bool = False, max_iter: Optional[int] = None,
               stride: Optional[int] = None, keep_running: bool = False, method: str = "sil",
-              b_from_frame: bool = False) -> list:
+              b_from_frame: bool = False, start_paused: bool = False) -> list:
     """Both halves: sim_camera + backward_fit + enhancer (+ bag_play): the fit re-parameterizes sim_camera,
     and through its parameter events the enhancer.
 
@@ -164,11 +163,12 @@ def sil_graph(sim_params: Optional[str] = None, bag: Optional[str] = None, outpu
     """
     nodes = [n for n in backward_graph(sim_params=sim_params, bag=bag, output_yaml=output_yaml, frames=frames,
                                        optimizer=optimizer, rate=rate, loop=loop, max_iter=max_iter, stride=stride,
-                                       keep_running=keep_running) if n.name != "bag_play"]
+                                       keep_running=keep_running, start_paused=start_paused)
+             if n.name != "bag_play"]
     nodes.append(_enhancer(method, b_from_frame, idle_exit=False))
     if bag:
         nodes[0].parameters.update(REPLAY_SIM_CAMERA)
-        nodes.append(_bag_play(bag, rate, loop, [FORWARD_INPUT], ["backward_fit", "enhancer"]))
+        nodes.append(_bag_play(bag, rate, loop, [FORWARD_INPUT], ["backward_fit", "enhancer"], start_paused))
     return nodes
 
 
@@ -309,6 +309,8 @@ BACKWARD_ARGS = (
     GraphArg("rate", "bag replay rate (2: twice as fast as recorded)", float, 1.0, minimum=0, strict=True),
     GraphArg("loop", "replay the bag in a loop", bool, False),
     GraphArg("keep_running", "with a bag: keep the graph running after the fit, until Ctrl-C", bool, False),
+    GraphArg("start_paused", "with a bag: wait for `ros2 service call /bag_play/resume std_srvs/srv/Trigger` "
+             "before replaying (time to start a recorder or viewer)", bool, False),
 )
 
 _ENHANCER_ARGS = (
@@ -325,6 +327,7 @@ FORWARD_ARGS = (
     *_ENHANCER_ARGS,
     *(a for a in BACKWARD_ARGS if a.name in ("rate", "loop")),
     GraphArg("keep_running", "with a bag: keep the graph running after its last frame, until Ctrl-C", bool, False),
+    *(a for a in BACKWARD_ARGS if a.name == "start_paused"),
 )
 
 SIL_ARGS = BACKWARD_ARGS + _ENHANCER_ARGS
@@ -390,5 +393,6 @@ def ros_args(spec: NodeSpec) -> list:
 
 
 def command_line(spec: NodeSpec, python: str = sys.executable) -> list:
-    """The process that runs ``spec`` without ``ros2 launch``."""
-    return [python, "-m", spec.module, *spec.arguments, *ros_args(spec)]
+    """The process that runs ``spec`` without ``ros2 launch``: the console script's own start
+    (:mod:`uw_sil.nodes.entry`), with this interpreter."""
+    return [python, "-m", "uw_sil.nodes.entry", spec.executable, *spec.arguments, *ros_args(spec)]
