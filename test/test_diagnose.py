@@ -173,3 +173,22 @@ def test_noise_statistics_leave_particles_out():
     assert raw["sigma_water"] > 4.0 and raw["lag_ratio"] < 0.7              # specks taken for noise
     st = noise_statistics(Y, S, hit, particle_exclusion(Y, S, hit))
     assert 1.8 < st["sigma_water"] < 2.5 and st["lag_ratio"] > 0.9
+
+
+def test_forward_scatter_is_named_beside_dense_marine_snow(tmp_path):
+    """A pair: strong forward scatter under dense marine snow. The particles are a random process of their
+    own that no proxy of the expected image explains; counted in the screening they shrank the blur's share
+    of the residual below the refit threshold and only the snow was named. The proxies now leave the
+    particles the snow signature finds out."""
+    from uw_sil.bags.synth import synthesize_trial, truth_path
+    from uw_sil.sim.camera import CameraModel
+
+    bag = tmp_path / "pair.mcap"
+    synthesize_trial(bag, n_frames=6, seed=3, camera=CameraModel.from_fov(160, 120),
+                     effects={"forward_scatter": "strong", "marine_snow": "strong"})
+    truth_path(bag).unlink()
+    js = tmp_path / "pair.json"
+    assert main(["diagnose", "--bag", str(bag), "--frames", "6", "--json", str(js)]) == 0
+    doc = json.loads(js.read_text())
+    assert {v["effect"] for v in doc["verdict"]} == {"marine_snow", "forward_scatter"}, doc["verdict"]
+    assert set(doc["final"]["effects"]) == {"marine_snow", "forward_scatter"}

@@ -11,7 +11,8 @@ camera info and panel poses, and the scene model; never a ground-truth sidecar):
 3. **locate**: residual maps real - sim per frame and channel, and where they are large (object / water /
    silhouette, 3x3 image regions, panel parts, range bins): :func:`uw_sil.fit.residuals.locate`.
 4. **signatures**: each effect's footprint tested on the residuals (:mod:`uw_sil.fit.signatures`) and
-   the share of the residual each effect's physics can explain (:mod:`uw_sil.fit.screening`).
+   the share of the residual each effect's physics can explain (:mod:`uw_sil.fit.screening`; without the
+   recording's particles when the marine snow signature finds them).
 5. **model and refit** the leading candidates: base + that effect (:mod:`uw_sil.sim.effects`), jointly,
    CMA-ES on θ over the fit frames from the base fit.
 6. **decide on held-out frames only**: an effect is accepted only if it raises held-out θ by more than
@@ -529,6 +530,18 @@ def _sigma0(effect: str, free) -> np.ndarray:
     return np.concatenate([base, np.full(len(free), eff)])
 
 
+def _particle_blocks(ctx, sigs: dict, factor: int):
+    """Per frame, the low-resolution pixels (``factor`` blocks) that hold a particle of the recording, when
+    the marine snow signature found particles (else None: the proxies see every pixel)."""
+    from .residuals import box_down
+    from .signatures import particle_masks
+
+    snow = sigs.get("marine_snow")
+    if snow is None or not snow.judged or snow.score < 1.0:
+        return None
+    return [box_down(m, factor) > 0 for m in particle_masks(ctx)]
+
+
 def diagnose_frames(frames: list, fog: str = "exp2", seed: int = 0, max_candidates: int = 3,
                     max_iter: int = 30, popsize: int = 12, progress: Optional[Callable[[str], None]] = None,
                     interrupt: Optional[Callable] = None, effects_allowed=None, source: str = "") -> Diagnosis:
@@ -592,7 +605,8 @@ def diagnose_frames(frames: list, fog: str = "exp2", seed: int = 0, max_candidat
     ctx = SignatureContext(rall, sims, nall, base_fit.x, fog)
     sigs = run_signatures(ctx)
     rlo_all = [R_lo[id(f)] for f in frames]
-    prox = screen_proxies(rlo_all, base_fit.x, noise_sigmas(rlo_all), fog=fog)
+    prox = screen_proxies(rlo_all, base_fit.x, noise_sigmas(rlo_all), fog=fog,
+                          exclude=_particle_blocks(ctx, sigs, f_lo))
     timing["signatures_s"] = time.perf_counter() - t0
 
     allowed = [e for e in EFFECTS if effects_allowed is None or e in effects_allowed]

@@ -57,12 +57,14 @@ class _Frame:
     quantities at a subsample of pixels (every ``stride``-th row and column), where the pixel-wise proxies
     are evaluated."""
 
-    def __init__(self, rf: ReducedFrame, stride: int):
+    def __init__(self, rf: ReducedFrame, stride: int, exclude=None):
         self.rf = rf
         h, w = rf.shape
         cam = rf.camera
         self.sel = np.zeros((h, w), bool)
         self.sel[stride // 2::stride, stride // 2::stride] = True
+        self.keep = np.ones((h, w), bool) if exclude is None else ~np.asarray(exclude, bool)
+        self.sel &= self.keep
         x = ((np.arange(w) - cam.cx) / cam.fx).astype(np.float32)[None, :]
         y = ((np.arange(h) - cam.cy) / cam.fy).astype(np.float32)[:, None]
         self.full = {
@@ -214,12 +216,18 @@ def _fit(name, frames, p0, fog, max_nfev=None, joint=True):
     return np.concatenate([p, e]), float(np.mean(r * r))
 
 
-def screen_proxies(rframes, base_x, noise, fog: str = "exp2", stride: int = 3, names=PROXIES) -> dict:
+def screen_proxies(rframes, base_x, noise, fog: str = "exp2", stride: int = 3, names=PROXIES,
+                   exclude=None) -> dict:
     """Fit each proxy (with the base parameters) and return ``{effect: ProxyResult}`` plus ``"base"``.
 
     ``rframes``: low-resolution reduced frames (e.g. 160x120); ``noise``: per-frame (3,) sigma at that size.
+    ``exclude``: per frame, a boolean mask of pixels left out of every fit and energy (a recording's
+    particles: a random process of its own, which no proxy of the expected image can explain; counted in,
+    dense snow's energy made the share of a real second effect small).
     """
-    frames = [_Frame(rf, stride) for rf in rframes]
+    if exclude is None:
+        exclude = [None] * len(rframes)
+    frames = [_Frame(rf, stride, ex) for rf, ex in zip(rframes, exclude)]
     n2 = float(np.mean([np.mean(np.square(s)) for s in noise]))
     xb, Eb = _fit("base", frames, np.asarray(base_x, float), fog)
     # the share is taken of the excess over the noise, but never of less than a third of the noise energy
@@ -247,7 +255,7 @@ def _water_structure(frames, xb, fog, Eb, n2, noise) -> ProxyResult:
     for fr, s in zip(frames, noise):
         S, _ = fr.base(xb, fog, full=True)
         D = (fr.Rfull - 255 * S)                              # (3, h, w)
-        w = fr.rf.water & ~dilate(fr.rf.cover > 0, 2)
+        w = fr.rf.water & ~dilate(fr.rf.cover > 0, 2) & fr.keep
         total_px += fr.sel.sum()
         if w.sum() < 100:
             continue

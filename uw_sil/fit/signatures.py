@@ -56,7 +56,7 @@ import numpy as np
 from .residuals import ReducedFrame, dilate, erode
 
 __all__ = ["Signature", "SignatureContext", "run_signatures", "luminance", "jsonable",
-           "speck_masks", "speck_density", "noise_statistics", "trimmed_sigma", "median_filter"]
+           "speck_masks", "speck_density", "particle_masks", "noise_statistics", "trimmed_sigma", "median_filter"]
 
 _MAD = 1.4826
 _LUMA = np.array([0.299, 0.587, 0.114], np.float32)
@@ -553,6 +553,17 @@ def particle_exclusion(Y: np.ndarray, S: np.ndarray, hit: np.ndarray, grow: int 
     of a few pixels is correlated, bright structure that white-noise statistics would read as noise."""
     pos = speck_masks(Y, S, hit)[0]
     return dilate(pos, grow) if pos.any() else None
+
+
+def particle_masks(ctx: "SignatureContext", grow: int = 1) -> list:
+    """:func:`particle_exclusion` of every frame of ``ctx`` at full resolution (all False without particles)."""
+    out = []
+    for k, rf in enumerate(ctx.rframes):
+        fr = rf.frame
+        m = particle_exclusion(luminance(fr.image.astype(np.float32)), luminance(ctx.full_sim(k)),
+                               np.isfinite(fr.render.range), grow)
+        out.append(np.zeros(fr.image.shape[:2], bool) if m is None else m)
+    return out
 
 
 def noise_statistics(Y: np.ndarray, S: np.ndarray, hit: np.ndarray,
