@@ -42,6 +42,9 @@ setup(
         "mahotas>=1.4.19",
         # campaign.parquet of `uw-sil batch`
         "pyarrow>=14",
+        # the diagnosis keeps BLAS to one thread: its own threads evaluate θ in parallel, and OpenBLAS's
+        # threads on top of them made a 43200x16 SVD 12x slower on a busy 2-core machine (0.42 s vs 0.035 s)
+        "threadpoolctl>=3.1",
     ],
     extras_require={
         # ROS 2 Kilted from PyPI wheels; inside a sourced ROS 2 workspace these come from /opt/ros.

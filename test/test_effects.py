@@ -58,7 +58,7 @@ def test_diagnosis_leaves_added_surfaces_out_of_noise_statistics(frames, rendere
     judged without: below the horizon, never the panel's own pixels' interior."""
     from types import SimpleNamespace
 
-    from uw_sil.fit.diagnose import _added_surface
+    from uw_sil.fit.residuals import added_surface as _added_surface
 
     T, rr = frames["far"]
     f = SimpleNamespace(render=rr, camera=renderer.camera, pose=T)

@@ -2,8 +2,9 @@
 
 A *candidate model* maps parameter vectors ``x = (7 base parameters, effect parameters ...)`` to
 simulated frames. :class:`BaseModel` is paper Eq. 1 with fog, area-exact on reduced frames
-(:func:`uw_sil.fit.residuals.base_sim`); :class:`EffectModel` (in :mod:`uw_sil.fit.diagnose`) adds
-effects of :mod:`uw_sil.sim.effects`. :class:`FrameObjective` is mean θ over frames for batches of
+(:func:`uw_sil.fit.residuals.base_sim`); :class:`EffectModel` adds
+effects of :mod:`uw_sil.sim.effects` (which parameters are free is the diagnosis plug-ins' choice,
+:mod:`uw_sil.fit.judges`). :class:`FrameObjective` is mean θ over frames for batches of
 such vectors (the camera noise estimated on each real frame's water is added to every candidate as a
 fixed realization, as in :class:`uw_sil.fit.backward.BackwardObjective`, unless the model draws its own
 noise). :func:`fit_model` maximizes it with CMA-ES and stops on convergence.
@@ -16,6 +17,7 @@ References
 """
 from __future__ import annotations
 
+import threading
 import time
 from dataclasses import dataclass, field
 from typing import Optional, Sequence
@@ -26,7 +28,8 @@ from .._shared.process import default_threads
 from ..sim.params import DEFAULT_RGB_BOUNDS, RGB_NAMES
 from .residuals import LABEL_PANEL, ReducedFrame, base_sim
 
-__all__ = ["BaseModel", "FrameObjective", "ModelFit", "fit_model", "noise_sigmas", "BASE_SIGMA0"]
+__all__ = ["BaseModel", "EffectModel", "FrameObjective", "ModelFit", "fit_model", "ls_fit", "noise_sigmas",
+           "BASE_SIGMA0"]
 
 
 #: Initial CMA-ES steps of the base parameters from a least-squares start (fraction of each range): small, and a
@@ -246,3 +249,136 @@ def fit_model(model, rframes, noise, x0, sigma0=0.1, seed: int = 0, max_iter: in
         x, f_best = x0.copy(), theta_start
     return ModelFit(model, x, f_best, theta_start, int(res.n_evals), int(res.n_iters),
                     str(res.stop_reason), time.perf_counter() - t0, seed, [float(v) for v in res.history_best_f])
+
+
+class EffectModel:
+    """Base model + effects of :mod:`uw_sil.sim.effects` on reduced frames, as a candidate model.
+
+    Parameter vector: the 7 base parameters, then the free parameters of each effect (``free[effect]``,
+    default all of them), named ``<effect>.<param>``. Non-free parameters take ``values[effect]`` over the
+    effect's defaults.
+
+    On reduced frames the model runs on block-averaged geometry; the fraction of each block covered by
+    the model (``cover``) scales the transmission so that silhouettes are area-exact as in
+    :func:`uw_sil.fit.residuals.base_sim` (not for geometry effects, which re-project the geometry).
+    """
+
+    def __init__(self, rframes, effects, values: Optional[dict] = None, free: Optional[dict] = None,
+                 fog: str = "exp2", seed: int = 0):
+        from ..sim.effects import EFFECT_ORDER, get_effect
+        from ..sim.model import UnderwaterModel
+        from ..sim.params import UnderwaterParams
+
+        self.rframes = list(rframes)
+        self.fog = fog
+        self.effects = tuple(n for n in EFFECT_ORDER if n in effects)
+        unknown = set(effects) - set(self.effects)
+        if unknown:
+            raise ValueError(f"unknown effects {sorted(unknown)}")
+        vals = {}
+        for n in self.effects:
+            v = get_effect(n).defaults()
+            v.update((values or {}).get(n, {}))
+            vals[n] = v
+        self.values = vals
+        self.free = {n: tuple((free or {}).get(n, get_effect(n).param_names)) for n in self.effects}
+        model = UnderwaterModel(UnderwaterParams(), vals, fog)
+        self.template = model.effect_vector()
+        self.pnames = model.effect_param_names()
+        self.idx = np.array([self.pnames.index(f"{n}.{p}") for n in self.effects for p in self.free[n]], int)
+        lo, hi = model.effect_bounds()
+        self._elo, self._ehi = lo[self.idx], hi[self.idx]
+        self.owns_noise = "sensor_noise" in self.effects
+        self._model = model
+        self._seed = seed
+        self._local = threading.local()          # PreparedModel is not thread-safe: one set per thread
+        self.pms = self._prepare()
+
+    def like(self, rframes, seed: Optional[int] = None) -> "EffectModel":
+        """The same model (effects, free parameters, fixed values) on other frames."""
+        return EffectModel(rframes, self.effects, self.values, self.free, self.fog,
+                           self._seed if seed is None else seed)
+
+    def _prepare(self) -> list:
+        from ..sim.model import Geometry
+
+        pms = []
+        for k, rf in enumerate(self.rframes):
+            geom = Geometry(rf.camera, rf.rgb, np.where(rf.cover > 0, rf.depth, np.inf),
+                            np.where(rf.cover > 0, rf.range, np.inf), rf.labels, rf.part_ids,
+                            pose=rf.frame.pose)
+            # area-exact silhouettes at the reduced resolution, as the base model has them
+            pms.append(self._model.prepare(geom, rf.camera, pose=rf.frame.pose, seed=1000 + k + 7919 * self._seed,
+                                           cover=rf.cover))
+        return pms
+
+    def _thread_pms(self) -> list:
+        if threading.current_thread() is threading.main_thread():
+            return self.pms
+        pms = getattr(self._local, "pms", None)
+        if pms is None:
+            pms = self._local.pms = self._prepare()
+        return pms
+
+    @property
+    def names(self) -> tuple:
+        return RGB_NAMES + tuple(f"{n}.{p}" for n in self.effects for p in self.free[n])
+
+    def bounds(self) -> tuple:
+        return (np.concatenate([DEFAULT_RGB_BOUNDS[0], self._elo]), np.concatenate([DEFAULT_RGB_BOUNDS[1], self._ehi]))
+
+    def effect_vectors(self, X) -> np.ndarray:
+        X = np.atleast_2d(X)
+        ev = np.repeat(self.template[None], len(X), axis=0)
+        ev[:, self.idx] = np.clip(X[:, 7:], self._elo, self._ehi)
+        return ev
+
+    def simulate(self, k: int, X, out=None) -> np.ndarray:
+        X = np.atleast_2d(np.asarray(X, float))
+        base = np.clip(X[:, :7], 0, None)
+        base[:, 3:6] = np.clip(base[:, 3:6], 0, 1)
+        with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
+            return self._thread_pms()[k](base, self.effect_vectors(X), out=out)
+
+    def x0(self, base_x, start: Optional[dict] = None) -> np.ndarray:
+        """Start vector: base parameters and effect values (``start`` over the model's values)."""
+        ev = []
+        for n in self.effects:
+            for p in self.free[n]:
+                v = (start or {}).get(n, {}).get(p, self.values[n][p])
+                ev.append(v)
+        lo, hi = self.bounds()
+        return np.clip(np.concatenate([np.asarray(base_x, float)[:7], ev]), lo, hi)
+
+    def params_of(self, x) -> dict:
+        x = np.asarray(x, float)
+        base = np.clip(x[:7], 0, None)
+        base[3:6] = np.clip(base[3:6], 0, 1)
+        ev = self.effect_vectors(x[None])[0]
+        eff = {}
+        for n in self.effects:
+            eff[n] = {p: float(ev[self.pnames.index(f"{n}.{p}")]) for p in self.values[n]}
+        return {"base": {k: float(v) for k, v in zip(RGB_NAMES, base)}, "effects": eff}
+
+
+def ls_fit(model: "EffectModel", x0, stride: int = 2, max_nfev: int = 12) -> np.ndarray:
+    """Least-squares fit (grey levels, every ``stride``-th pixel) of a candidate model to its frames, from x0."""
+    from scipy.optimize import least_squares
+
+    lo, hi = model.bounds()
+    x0 = np.clip(np.asarray(x0, float), lo + 1e-9 * (hi - lo), hi - 1e-9 * (hi - lo))
+    reals = [rf.image[stride // 2::stride, stride // 2::stride] for rf in model.rframes]
+
+    def resid(x):
+        out = []
+        for k, R in enumerate(reals):
+            I = model.simulate(k, x[None])[0][stride // 2::stride, stride // 2::stride]
+            out.append((I * 255.0 - R).ravel())
+        return np.concatenate(out)
+
+    try:
+        r = least_squares(resid, x0, bounds=(lo, hi), method="trf", x_scale=np.maximum(hi - lo, 1e-6) * 0.1,
+                          diff_step=2e-3, max_nfev=max_nfev, xtol=1e-4, ftol=1e-4)
+    except (ValueError, FloatingPointError):
+        return x0
+    return r.x

@@ -124,8 +124,6 @@ def signature_figure(diag):
 
 def models_figure(diag):
     plt = pyplot()
-    from .diagnose import EffectModel
-
     F = diag.figures
     held = F["held"]
     key = F["final_key"]
@@ -136,7 +134,7 @@ def models_figure(diag):
     fig, axes = plt.subplots(len(rows), 3, figsize=(10, 2.6 * len(rows)), squeeze=False)
     ext = None
     if key is not None:
-        ext = EffectModel(rows, fits[key]["model_effects"], fog=F["fog"])
+        ext = fits[key]["model"].like(rows)
     for k, (ax, rf) in enumerate(zip(axes, rows)):
         ax[0].imshow(np.clip(rf.image / 255.0, 0, 1))
         ax[0].set_title(f"recording #{rf.frame.index} (held out, {rf.frame.range_median:.2f} m)", fontsize=8)
@@ -144,7 +142,7 @@ def models_figure(diag):
         ax[1].set_title("base model", fontsize=8)
         if ext is not None:
             ax[2].imshow(np.clip(ext.simulate(k, fits[key]["x"][None])[0], 0, 1))
-            ax[2].set_title(f"extended model: base + {key}", fontsize=8)
+            ax[2].set_title(f"extended model: {key}", fontsize=8)
         else:
             ax[2].text(0.5, 0.5, "no effect accepted", ha="center", va="center")
         for a in ax:
@@ -159,13 +157,13 @@ def heldout_figure(diag):
     F = diag.figures
     base = F["base_held_pf"]
     fits = F["fits"]
-    names = list(fits)
+    names = [n for n in fits if n != "base"]          # the selection path: base + e1, base + e1 + e2, ...
     fig, axes = plt.subplots(1, 2, figsize=(11, 3.8))
     ax = axes[0]
     x = np.arange(len(base))
     ax.plot(x, base, "ko-", label=f"base ({base.mean():.4f})")
     for n in names:
-        ax.plot(x, fits[n]["held_pf"], "o--", label=f"+ {n} ({fits[n]['held_pf'].mean():.4f})")
+        ax.plot(x, fits[n]["held_pf"], "o--", label=f"{n} ({fits[n]['held_pf'].mean():.4f})")
     ax.set_xticks(x)
     ax.set_xticklabels([f"#{rf.frame.index}\n{rf.frame.range_median:.1f} m" for rf in F["held"]], fontsize=7)
     ax.set_ylabel("held-out θ")
@@ -181,7 +179,7 @@ def heldout_figure(diag):
     ax.set_ylim(max(0.0, lo), min(1.0, max(vals) + 0.02))
     ax.set_xticks(range(len(vals)))
     ax.set_xticklabels(labels, rotation=20, fontsize=7, ha="right")
-    ax.set_title("held-out θ before / after (green: final model)", fontsize=9)
+    ax.set_title("held-out θ along the selection (green: final model)", fontsize=9)
     ax.legend(fontsize=7)
     fig.tight_layout()
     return fig
@@ -220,10 +218,17 @@ def write_diagnosis_report(diag, out_dir, title: str = "uw_sil mismatch diagnosi
     parts.append(f"<p>held-out θ: base {d['base']['theta_heldout']:.4f} → final {d['final']['theta_heldout']:.4f} "
                  f"(train θ of the base fit {d['base']['theta_train']:.4f})</p>")
     parts.append('<img src="heldout.png" width="900">')
-    parts.append("<h2>Candidates (refitted, judged on held-out frames)</h2>")
-    parts.append(_table([(c["effect"], c["theta_train"], c["theta_heldout"], c["delta_heldout"], c.get("margin", 0.0))
+    if d["base"].get("doubts"):
+        parts.append("<p>doubt about the base fit: " + html.escape("; ".join(d["base"]["doubts"])) + "</p>")
+    parts.append("<h2>Selection, step by step (every effect refitted, held-out frames decide)</h2>")
+    parts.append(_table([(s["round"], s["model"], s["theta_heldout"], ", ".join(s["tried"]), s["chosen"] or "—",
+                          s["time_s"]) for s in d.get("selection", [])],
+                        ["round", "model", "θ held-out", "effects refitted", "chosen", "s"]))
+    parts.append("<h2>Candidates (refitted jointly with the round's model, judged on held-out frames)</h2>")
+    parts.append(_table([(c.get("round", 1), c.get("model", "base"), c["effect"], c["theta_train"], c["theta_heldout"],
+                          c["delta_heldout"], c.get("margin", 0.0), "yes" if c.get("accepted") else "no")
                          for c in d["candidates"]],
-                        ["effect", "θ train", "θ held-out", "Δ held-out", "margin"]))
+                        ["round", "model", "+ effect", "θ train", "θ held-out", "Δ held-out", "margin", "beats margin"]))
     parts.append('<h2>Base vs extended model (held-out frames)</h2><img src="models.png" width="900">')
     parts.append("<h2>Where the mismatch is</h2>")
     parts.append(_table([(r["kind"], r["name"], r["pixels"], r["rms"], r["mean"], r["share"])
@@ -231,9 +236,9 @@ def write_diagnosis_report(diag, out_dir, title: str = "uw_sil mismatch diagnosi
                         ["kind", "region", "pixels", "rms (DN)", "mean r,g,b (DN)", "share of excess"]))
     parts.append('<img src="residuals.png" width="900">')
     parts.append("<h2>Signatures</h2>")
-    parts.append(_table([(e, s["score"], s.get("explained_share"), s.get("screen_score"), s["judged"],
+    parts.append(_table([(e, s["score"], s.get("explained_share"), s.get("order_score"), s["judged"],
                           json.dumps(s["stats"])[:300]) for e, s in d["signatures"].items()],
-                        ["effect", "signature score", "explained share", "screen score", "judged", "numbers"]))
+                        ["effect", "signature score", "explained share", "order score", "judged", "numbers"]))
     parts.append('<img src="signatures.png" width="900">')
     parts.append("<h2>Timing</h2>" + _table([(k, v) for k, v in d["timing"].items()], ["step", "s"]))
     page = ("<!doctype html><html><head><meta charset='utf-8'><title>" + html.escape(title) +

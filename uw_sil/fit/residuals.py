@@ -22,7 +22,8 @@ from typing import Optional, Sequence
 import numpy as np
 
 __all__ = ["DiagFrame", "ReducedFrame", "box_down", "reduce_frame", "reduction_factor", "load_frames",
-           "split_frames", "base_sim", "residual_maps", "locate", "LABEL_WATER", "LABEL_PANEL"]
+           "split_frames", "base_sim", "residual_maps", "locate", "frame_geometry", "added_surface", "corrected_frame",
+           "LABEL_WATER", "LABEL_PANEL"]
 
 LABEL_WATER = 0
 LABEL_PANEL = 1
@@ -342,3 +343,40 @@ def locate(rframes: Sequence[ReducedFrame], residuals: Sequence[np.ndarray], noi
     order = {"class": 0, "grid": 1, "part": 2, "range": 3}
     regions.sort(key=lambda r: (order[r["kind"]], -r["share"]))
     return {"regions": regions, "total_excess_ms": float(total)}
+
+
+def frame_geometry(frame, geo_effects: dict) -> tuple:
+    """(as rendered, with the geometry effects) full-resolution geometry of a frame: geometry-stage effects
+    (a seafloor, a pose correction) applied to its render, as the simulator applies them before shading."""
+    from types import SimpleNamespace
+
+    from ..sim.effects import get_effect
+    from ..sim.model import Geometry
+
+    rr = frame.render
+    geom = Geometry(frame.camera, rr.rgb, rr.depth, rr.range, rr.labels, rr.part_ids, pose=frame.pose)
+    t = SimpleNamespace(geom=geom)
+    for name, values in geo_effects.items():
+        eff = get_effect(name)
+        eff.apply(t, eff.values(values), None)
+    return geom, t.geom
+
+
+def added_surface(frame, geo_effects: dict, grow: int = 24) -> np.ndarray:
+    """Pixels (full resolution, grown by ``grow`` px: the margin of the noise statistics) where geometry
+    effects with these values add surfaces to what the frame's render saw."""
+    before, after = frame_geometry(frame, geo_effects)
+    return dilate(after.hit & ~before.hit, grow)
+
+
+def corrected_frame(frame, geo_effects: dict):
+    """The frame with its render replaced by the full-resolution geometry the effects give (for a pose
+    correction: the render warped to the corrected pose at full resolution, then reduced like any frame;
+    warping the reduced geometry instead interpolates away a sub-pixel shift's worth of detail)."""
+    import dataclasses
+
+    from ..sim.render import RenderResult
+
+    _, g = frame_geometry(frame, geo_effects)
+    rr = RenderResult(rgb=g.rgb, depth=g.depth, range=g.range, labels=g.labels, part_ids=g.part_ids)
+    return dataclasses.replace(frame, render=rr, coverage=float(np.mean(g.hit)))

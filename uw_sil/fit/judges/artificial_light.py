@@ -1,0 +1,60 @@
+"""Diagnosis plug-in of the vehicle lamps (:mod:`uw_sil.sim.effects.artificial_light`)."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .base import Judge
+
+
+class ArtificialLightJudge(Judge):
+    effect = "artificial_light"
+    # power is free: how bright the lamps are against the render's light level is the recording's, not ours
+    # (fixed at 1, a foreign rig normalized at 2.5 m instead of 2 m could not be fitted)
+    free = ("offset_x", "offset_y", "toe_in", "half_angle", "shape", "balance", "fill", "power", "veil")
+    res = "low"
+    sigma = 0.12
+    # no uniform light at all (lamps alone: the deep sea), one lamp only, a symmetric pair
+    physical_bounds = ("fill", "balance")
+    # far-apart rigs tried as least-squares starts (a symmetric toed-in pair; one strong lamp to one side;
+    # lamps as the only light): least squares from each, and θ picks
+    alt_starts = ({"offset_x": 0.5, "offset_y": -0.1, "toe_in": 0.2, "half_angle": 0.45, "balance": 0.5, "fill": 0.2},
+                  {"offset_x": 0.8, "offset_y": -0.3, "toe_in": 0.0, "half_angle": 0.7, "balance": 0.1, "fill": 0.3},
+                  {"offset_x": 0.4, "offset_y": -0.2, "toe_in": 0.1, "half_angle": 0.6, "balance": 0.5, "fill": 0.0,
+                   "veil": 0.01})
+
+    def order(self, job):
+        p = job.prox.get(self.effect)
+        return p.explained / 0.25 if p is not None else 0.0
+
+    def start(self, job):
+        p = job.prox.get(self.effect)
+        if p is not None and p.params:
+            q = p.params
+            return {"offset_x": float(np.clip(q["offset_x"], 0.05, 1.5)), "offset_y": float(q["offset_y"]),
+                    "half_angle": float(q["half_angle"]), "balance": float(q["balance"]),
+                    "fill": float(np.clip(q["fill"], 0.0, 0.95)), "veil": 0.002}
+        return {"fill": 0.8}
+
+    def explain(self, e, gain, sig):
+        side, other = ("right", "left") if e.get("offset_x", 0) >= 0 else ("left", "right")
+        bal = e.get("balance", 0)
+        off = abs(e.get("offset_x", 0))
+        if bal > 0.35:
+            lamp = f"two lamps about {off:.2f} m left and right of the camera"
+        elif bal > 0.05:
+            lamp = (f"a lamp about {off:.2f} m {side} of the camera (and a weaker one, {100 * bal:.0f} % of the "
+                    f"light, {other})")
+        else:
+            lamp = f"a lamp about {off:.2f} m {side} of the camera"
+        return (f"the recording is lit by vehicle lamps the simulation lacks: brightness on the panel falls "
+                f"~1/r² from {lamp} ({100 * (1 - e.get('fill', 1)):.0f} % of the light from the lamps, beam half "
+                f"width {math.degrees(e.get('half_angle', 0)):.0f}°); {gain}")
+
+    def ranges(self, e):
+        out = []
+        d = math.hypot(e.get("offset_x", 0), e.get("offset_y", 0))
+        if d < 0.1:
+            out.append(f"lamps {d:.2f} m from the camera: ROV lamps sit 0.3-1.5 m from it")
+        return out

@@ -1,0 +1,38 @@
+"""Diagnosis plug-in of β_B ≠ β_D (:mod:`uw_sil.sim.effects.backscatter_coefficient`)."""
+from __future__ import annotations
+
+from .base import Judge
+
+#: β_B/β_D beyond which a fit is doubted: Akkaynak & Treibitz (CVPR 2018) measured the two coefficients
+#: differing by tens of percent, not by factors of several; a larger ratio means the effect absorbs
+#: something else (often lamp falloff).
+RATIO_RANGE = (0.5, 2.5)
+
+
+class BackscatterCoefficientJudge(Judge):
+    effect = "backscatter_coefficient"
+    free = ("ratio_r", "ratio_g", "ratio_b", "decay")
+    res = "low"
+
+    def order(self, job):
+        p = job.prox.get(self.effect)
+        return p.explained / 0.25 if p is not None else 0.0
+
+    def start(self, job):
+        p = job.prox.get(self.effect)
+        if p is not None and p.params:
+            return {"ratio_r": p.params["ratio_r"], "ratio_g": p.params["ratio_g"], "ratio_b": p.params["ratio_b"],
+                    "decay": 0.2}
+        return {}
+
+    def explain(self, e, gain, sig):
+        return (f"the backscatter builds up with other coefficients than the direct signal fades "
+                f"(β_B/β_D = {e.get('ratio_r', 1):.2f}, {e.get('ratio_g', 1):.2f}, {e.get('ratio_b', 1):.2f} "
+                f"for r, g, b; β_D falls with range by factor {1 + e.get('decay', 0):.1f} near the camera): an "
+                f"additive bias on the panel that the water does not show; {gain}")
+
+    def ranges(self, e):
+        lo, hi = RATIO_RANGE
+        bad = [f"{c} {e[f'ratio_{c}']:.2f}" for c in "rgb" if not lo <= e.get(f"ratio_{c}", 1.0) <= hi]
+        return [f"β_B/β_D outside {lo}-{hi} ({', '.join(bad)}): more than the two coefficients differ in "
+                f"measured water"] if bad else []

@@ -1,0 +1,334 @@
+"""What every diagnosis plug-in is made of: the shared job, the model selected so far, a refit's result.
+
+A :class:`Judge` owns, for one effect of :mod:`uw_sil.sim.effects`, what the selection loop of
+:func:`uw_sil.fit.diagnose.diagnose_frames` needs and must not know itself: which parameters are refitted
+and at which resolution, the start values (from the residual signatures and the screening proxies of the
+*fit* frames), the refit, the held-out criterion, the plain-language explanation and the physical
+plausibility of the fitted values. The loop names no effect.
+
+Two kinds of held-out criterion:
+
+``theta``      the effect changes the expected image: accepted when held-out θ of the model with it beats
+               the model without it by more than the noise margin (:func:`margin_for`).
+``statistic``  the effect draws new random numbers in every frame (particles, temporal noise): a pixel-wise
+               θ cannot rise for them, since simulated particles and noise fall elsewhere than the recorded
+               ones; accepted when a held-out *statistic* (speck density, noise level and correlation) moves
+               towards the recording's by more than its own bootstrap margin.
+
+The refit of a ``theta`` effect (:func:`theta_refit`) is nested: it fits the current model plus the effect
+jointly, from the current optimum with the effect at its neutral values (and from the plug-in's starts), and
+never ends below the current model on the fit frames at the comparison resolution (the better of the two is
+kept), so a model that contains another cannot lose to it through the optimizer.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from typing import Callable, Optional
+
+import numpy as np
+
+from ..diagfit import BASE_SIGMA0, EffectModel, FrameObjective, fit_model, ls_fit, noise_sigmas
+
+__all__ = ["Job", "Current", "Refit", "Judge", "theta_refit", "margin_for", "bootstrap_se", "z_multiple",
+           "MIN_MARGIN"]
+
+#: Smallest held-out θ gain accepted, whatever the bootstrap says (the spread of four frames can be tiny).
+MIN_MARGIN = 0.003
+
+
+def bootstrap_se(d, n: int = 2000, seed: int = 0) -> float:
+    """Bootstrap standard error of the mean of per-frame values (frames resampled with replacement)."""
+    d = np.asarray(d, float)
+    if d.size < 2:
+        return float("inf")
+    rng = np.random.default_rng(seed)
+    means = d[rng.integers(0, d.size, (n, d.size))].mean(axis=1)
+    return float(np.std(means))
+
+
+def z_multiple(m: int, alpha: float = 0.05) -> float:
+    """One-sided normal quantile for ``m`` candidates tried at once (Bonferroni: ``alpha / m`` each)."""
+    from scipy.stats import norm
+
+    return float(norm.ppf(1.0 - alpha / max(1, int(m))))
+
+
+def margin_for(gain_pf, m: int = 1, seed: int = 0) -> float:
+    """Noise margin a mean held-out gain must beat: ``z(m)`` bootstrap standard errors of the per-frame gains
+    (corrected for the ``m`` candidates of the round), and at least :data:`MIN_MARGIN`."""
+    return max(MIN_MARGIN, z_multiple(m) * bootstrap_se(gain_pf, seed=seed))
+
+
+@dataclass
+class Job:
+    """What every refit of one diagnosis sees.
+
+    Attributes
+    ----------
+    fit_f, sel_f : list of DiagFrame
+        Fit frames and held-out (selection) frames.
+    R_hi, R_lo, R_ls : dict
+        ``id(frame) -> ReducedFrame`` at about 320 and 160 px wide, and about 80 px wide for the
+        least-squares starts of smooth effects.
+    fog, seed, max_iter, popsize, patience, ls_nfev :
+        Model fog mode and the optimizer budget every candidate gets (the base fit gets the same).
+    sigs, prox : dict
+        Residual signatures and screening proxies of the base fit on the *fit* frames only.
+    judges : dict
+        ``effect -> Judge`` (the registry, so that joint models find their partners' settings).
+    exclude : dict
+        ``id(frame) -> (H, W) bool`` full-resolution pixels left out of noise statistics (surfaces an
+        accepted geometry effect adds).
+    interrupt : callable or None
+        Called between optimizer iterations (raises to stop).
+    """
+
+    fit_f: list
+    sel_f: list
+    R_hi: dict
+    R_lo: dict
+    R_ls: dict
+    fog: str
+    seed: int
+    max_iter: int
+    popsize: int
+    patience: int
+    sigs: dict
+    prox: dict
+    judges: dict
+    ls_nfev: int = 12
+    exclude: dict = field(default_factory=dict)
+    interrupt: Optional[Callable] = None
+
+    def reduced(self, frames, res: str = "high") -> list:
+        R = {"high": self.R_hi, "low": self.R_lo, "ls": self.R_ls}[res]
+        return [R[id(f)] for f in frames]
+
+    @property
+    def camera(self):
+        return self.R_lo[id(self.fit_f[0])].frame.camera
+
+    def frame_theta(self, model: EffectModel, frames, x, seed_offset: int = 0) -> np.ndarray:
+        """θ per frame (high resolution) of parameter vectors ``x`` (N, d) of ``model``'s kind on ``frames``:
+        the objective every model is compared with (same noise realization for every model)."""
+        rf = self.reduced(frames, "high")
+        m = model.like(rf, seed=self.seed + seed_offset)
+        with FrameObjective(rf, m, noise_sigmas(rf), seed=self.seed) as ob:
+            return ob.per_frame(np.atleast_2d(x))
+
+
+@dataclass
+class Current:
+    """The model selected so far: its deterministic effects (``values`` complete per effect), its 7 base
+    parameters, θ on the fit frames and per held-out frame (high resolution), and the vector and model that
+    give them. Effects judged by a statistic are not part of it (they cannot be compared by θ)."""
+
+    effects: tuple
+    values: dict
+    base: np.ndarray
+    theta_fit: float
+    sel_pf: np.ndarray
+    x: Optional[np.ndarray] = None
+    model: Optional[EffectModel] = None
+    absorbed: dict = field(default_factory=dict)     # geometry corrections applied to the frames themselves
+
+    @property
+    def name(self) -> str:
+        return " + ".join(("base",) + self.effects)
+
+
+@dataclass
+class Refit:
+    """A plug-in's refit of the current model plus its effect.
+
+    ``params`` is ``{"base": {...}, "effects": {name: values}}`` of the whole model; ``sel_pf`` θ per
+    held-out frame; ``statistic`` (``kind == "statistic"`` or a supporting statistic) ``{"name", "real",
+    "base_sim", "candidate_sim", "improvement", "margin", ...}``.
+    """
+
+    effect: str
+    effects: tuple
+    x: np.ndarray
+    params: dict
+    theta_fit: float
+    sel_pf: np.ndarray
+    model: Optional[EffectModel] = None
+    statistic: Optional[dict] = None
+    started_at_current: bool = False      # the refit kept the current model's optimum (no improvement found)
+    extra: dict = field(default_factory=dict)
+
+
+class Judge:
+    """Base class of the diagnosis plug-ins (one per effect; see the module docstring).
+
+    Attributes
+    ----------
+    effect : str
+        Registry name of the effect in :mod:`uw_sil.sim.effects`.
+    free : tuple or None
+        Parameters refitted (None: all).
+    fixed : dict
+        Values of the parameters that are not refitted (over the effect's defaults).
+    res : str
+        ``"low"`` (about 160 px wide: the effect is smooth) or ``"high"`` (about 320 px).
+    kind : str
+        ``"theta"`` or ``"statistic"``.
+    sigma : float
+        Initial CMA-ES step of the effect parameters (fraction of each range).
+    alt_starts : tuple of dict
+        Physically far-apart configurations also tried as least-squares starts.
+    least_squares : bool
+        Whether a least-squares fit from the starts is tried before CMA-ES (smooth deterministic effects).
+    absorb : bool
+        An accepted correction is applied to the frames' geometry for the rest of the selection (pose).
+    physical_bounds : tuple
+        Parameters whose bounds are physical limits, not a fitter's box (a share of 0 or 1): a fitted value
+        there is no reason for doubt.
+    """
+
+    effect: str = ""
+    free: Optional[tuple] = None
+    fixed: dict = {}
+    res: str = "low"
+    kind: str = "theta"
+    sigma: float = 0.1
+    alt_starts: tuple = ()
+    least_squares: bool = True
+    absorb: bool = False
+    physical_bounds: tuple = ()
+
+    # ------------------------------------------------------------------ settings
+
+    def free_params(self) -> tuple:
+        from ...sim.effects import get_effect
+
+        names = get_effect(self.effect).param_names
+        return tuple(self.free) if self.free is not None else tuple(n for n in names if n not in self.fixed)
+
+    def neutral(self, values: dict) -> bool:
+        """Whether these values leave the image as the model without the effect renders it."""
+        from ...sim.effects import get_effect
+
+        return bool(get_effect(self.effect).is_identity(values))
+
+    def signature(self, job: Job):
+        return job.sigs.get(self.effect)
+
+    def order(self, job: Job) -> float:
+        """How strongly the residual signature points at this effect (orders the work; never a veto)."""
+        s = self.signature(job)
+        return float(s.score) if s is not None and s.judged else 0.0
+
+    def start(self, job: Job) -> dict:
+        """Start values of the effect's parameters for the refit (physical estimates; {} = defaults)."""
+        return {}
+
+    # ------------------------------------------------------------------ refit and criterion
+
+    def refit(self, job: Job, current: Current) -> Refit:
+        return theta_refit(job, current, self)
+
+    def accept(self, r: Refit, current: Current, margin: float) -> tuple:
+        """``(accepted, strength)``: held-out θ gain over the current model beyond ``margin``; strength is the
+        gain in margins (it ranks the accepted candidates of a round)."""
+        gain = float(np.mean(r.sel_pf - current.sel_pf))
+        return gain > margin, gain / margin
+
+    # ------------------------------------------------------------------ words
+
+    def explain(self, values: dict, gain: str, sig) -> str:
+        return gain
+
+    def plausibility(self, values: dict) -> list:
+        """Doubts about fitted values: refitted parameters on a bound of their box (the fit wanted more), and
+        the plug-in's physical ranges (:meth:`ranges`)."""
+        from ...sim.effects import get_effect
+
+        eff = get_effect(self.effect)
+        out = []
+        for p in eff.params:
+            if p.name not in self.free_params() or p.name not in values or p.name in self.physical_bounds:
+                continue
+            v, span = values[p.name], p.hi - p.lo
+            if (v - p.lo < 0.01 * span and p.default - p.lo > 0.01 * span) or \
+                    (p.hi - v < 0.01 * span and p.hi - p.default > 0.01 * span):
+                out.append(f"{self.effect}.{p.name} = {v:.3g} sits on its bound [{p.lo:g}, {p.hi:g}]")
+        out += self.ranges(values)
+        return out
+
+    def ranges(self, values: dict) -> list:
+        """Values outside the ranges deep-sea physics allows (plug-ins override)."""
+        return []
+
+
+# ====================================================================================== the generic refit
+
+
+def _sigma0(judges) -> np.ndarray:
+    return np.concatenate([BASE_SIGMA0 * 1.5] + [np.full(len(j.free_params()), j.sigma) for j in judges])
+
+
+def theta_refit(job: Job, current: Current, judge: Judge, starts: Optional[list] = None) -> Refit:
+    """Refit the current model plus ``judge.effect`` jointly on the fit frames (θ, CMA-ES with the common
+    budget, started from the best of: the current optimum with the effect neutral, the plug-in's start, least
+    squares from those and from the plug-in's alternative starts) and score it per held-out frame.
+
+    Never ends below the current model on the fit frames at high resolution: if the fitted vector scores
+    lower there than the current optimum with the effect neutral, the latter is kept."""
+    from ...sim.effects import EFFECT_ORDER
+
+    names = tuple(e for e in EFFECT_ORDER if e in current.effects or e == judge.effect)
+    js = [job.judges[e] for e in names]
+    res = "high" if any(j.res == "high" for j in js) else "low"
+    rfit = job.reduced(job.fit_f, res)
+    free = {j.effect: j.free_params() for j in js}
+    values = {j.effect: {**j.fixed, **current.values.get(j.effect, {})} for j in js}
+    model = EffectModel(rfit, names, values=values, free=free, fog=job.fog, seed=job.seed)
+    cur = {e: current.values[e] for e in current.effects}
+    x_id = model.x0(current.base, cur)
+    s0 = judge.start(job)
+    x_hint = model.x0(current.base, {**cur, judge.effect: s0})
+    cand = [x_id, x_hint] + [model.x0(current.base, {**cur, judge.effect: s}) for s in (starts or [])]
+    if judge.least_squares:
+        lmodel = model.like(job.reduced(job.fit_f, "ls"))
+        for xs in [x_hint] + [lmodel.x0(current.base, {**cur, judge.effect: {**s0, **a}}) for a in judge.alt_starts]:
+            cand.append(ls_fit(lmodel, xs, stride=1, max_nfev=job.ls_nfev))
+    noise = noise_sigmas(rfit)
+    with FrameObjective(rfit, model, noise, seed=job.seed) as of:
+        th = of(np.stack(cand))
+    x0 = cand[int(np.nanargmax(th))]
+    fit = fit_model(model, rfit, noise, x0, sigma0=_sigma0(js), seed=job.seed, max_iter=job.max_iter,
+                    popsize=job.popsize, patience=job.patience, interrupt=job.interrupt)
+    # the nesting invariant, judged where models are compared (fit frames, high resolution)
+    # (only where the effect has neutral values: a seafloor, once listed, is there)
+    t_fit = job.frame_theta(model, job.fit_f, np.stack([fit.x, x_id])).mean(axis=1)
+    neutral = job.judges[judge.effect].neutral(model.params_of(x_id)["effects"][judge.effect])
+    kept_current = bool(neutral and not t_fit[0] >= t_fit[1])
+    x = x_id if kept_current else fit.x
+    sel_pf = job.frame_theta(model, job.sel_f, x, seed_offset=50)[0]
+    return Refit(effect=judge.effect, effects=names, x=x, params=model.params_of(x),
+                 theta_fit=float(t_fit[1] if kept_current else t_fit[0]),
+                 sel_pf=sel_pf, model=model, started_at_current=kept_current,
+                 extra={"theta_fit_optimizer": float(t_fit[0]), "theta_fit_nested_start": float(t_fit[1]),
+                        "resolution": res, "n_evals": int(fit.n_evals)})
+
+
+def gain_words(b_held: float, c_held: float, statistic: Optional[dict] = None) -> str:
+    """The held-out evidence in words (what every explanation ends with)."""
+    if statistic is not None:
+        return (f"modelling it brings the held-out frames' {statistic['name']} from {statistic['base_sim']:.3g} "
+                f"(model without it) to {statistic['candidate_sim']:.3g} (recording: {statistic['real']:.3g}); "
+                f"held-out θ {b_held:.3f} -> {c_held:.3f}")
+    return f"modelling it raises held-out θ from {b_held:.3f} to {c_held:.3f}"
+
+
+def with_effect(current: Current, r: Refit, judge: Judge) -> Current:
+    """The current model after accepting ``r`` (a ``theta`` effect)."""
+    return replace(current, effects=r.effects, values={e: dict(r.params["effects"][e]) for e in r.effects},
+                   base=np.array([r.params["base"][k] for k in r.params["base"]], float), theta_fit=r.theta_fit,
+                   sel_pf=np.asarray(r.sel_pf, float), x=r.x, model=r.model)
+
+
+def deg(v: float) -> float:
+    return math.degrees(v)

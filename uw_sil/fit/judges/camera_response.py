@@ -1,0 +1,22 @@
+"""Diagnosis plug-in of the camera's tone curve and white balance (:mod:`uw_sil.sim.effects.camera_response`)."""
+from __future__ import annotations
+
+from .base import Judge
+
+
+class CameraResponseJudge(Judge):
+    effect = "camera_response"
+    free = ("gamma", "gain_r", "gain_g", "gain_b", "black")
+    res = "low"
+
+    def order(self, job):
+        p = job.prox.get(self.effect)
+        return p.explained / 0.25 if p is not None else 0.0
+
+    def start(self, job):
+        return {"gamma": 1.1, "black": 0.01}
+
+    def explain(self, e, gain, sig):
+        return (f"the camera maps light to grey levels differently: tone curve gamma {e.get('gamma', 1):.2f}, "
+                f"white-balance gains r/g/b {e.get('gain_r', 1):.2f}/{e.get('gain_g', 1):.2f}/"
+                f"{e.get('gain_b', 1):.2f}, black level {255 * e.get('black', 0):.0f} DN; {gain}")

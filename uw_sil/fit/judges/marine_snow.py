@@ -1,0 +1,91 @@
+"""Diagnosis plug-in of marine snow (:mod:`uw_sil.sim.effects.marine_snow`).
+
+Particles are new in every frame: a simulation with snow puts its specks where the recording has none, so a
+pixel-wise θ cannot rise for it (it falls). It is judged on the held-out frames by the density of small
+bright specks instead (:func:`uw_sil.fit.signatures.speck_density`).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ..diagfit import EffectModel, FrameObjective, noise_sigmas
+from ..residuals import base_sim
+from .base import Judge, Refit, bootstrap_se
+
+def snow_refit(R_hi, fit_f, held_f, base_x, fog, seed) -> dict:
+    """Marine snow, fitted and judged by the density of small bright specks (new in every frame).
+
+    Density and brightness of the particles are chosen on the fit frames so that simulated frames (base
+    model + snow + the estimated camera noise) show as many bright specks per megapixel as the recording
+    (:func:`uw_sil.fit.signatures.speck_density`); on the held-out frames the same statistic of the
+    recording is compared with the base model's and the candidate's (log densities), and the improvement
+    is bootstrapped over frames. θ is also reported (it cannot rise: particles are at random places)."""
+    from ...sim.noise import NoiseField
+    from ..signatures import luminance, speck_density
+
+    def frames_stats(rfs, x_list, eff_model):
+        """per frame: real density, and the simulated density for each parameter vector in x_list."""
+        noise = noise_sigmas(rfs)
+        out_real, out_sim = [], []
+        for k, rf in enumerate(rfs):
+            S = luminance(255.0 * base_sim(rf, base_x, fog))
+            hit = rf.cover > 0
+            out_real.append(speck_density(luminance(rf.image), S, hit)[0])
+            nf = NoiseField(rf.shape + (3,), noise[k], seed=seed + 31 * k)
+            sims = eff_model.simulate(k, np.stack(x_list)) * 255.0
+            row = []
+            for img in sims:
+                nf.apply(img)
+                row.append(speck_density(luminance(img), S, hit)[0])
+            out_sim.append(row)
+        return np.array(out_real), np.array(out_sim)
+
+    rfit = [R_hi[id(f)] for f in fit_f]
+    rheld = [R_hi[id(f)] for f in held_f]
+    model = EffectModel(rfit, ["marine_snow"], fog=fog, seed=seed)
+    grid = [(d, b) for d in (0.0, 15.0, 40.0, 100.0, 250.0, 600.0, 1500.0) for b in (0.3, 0.6, 1.2)]
+    xs = [model.x0(base_x, {"marine_snow": {"density": d, "brightness": b, "size": 2.0}}) for d, b in grid]
+    real, sim = frames_stats(rfit, xs, model)
+    err = np.abs(np.log1p(sim) - np.log1p(real)[:, None]).mean(axis=0)
+    j = int(np.argmin(err))
+    x = xs[j]
+    hmodel = EffectModel(rheld, ["marine_snow"], fog=fog, seed=seed + 50)
+    x_base = hmodel.x0(base_x, {"marine_snow": {"density": 0.0}})
+    real_h, sim_h = frames_stats(rheld, [x_base, x], hmodel)
+    e_base = np.abs(np.log1p(sim_h[:, 0]) - np.log1p(real_h))
+    e_cand = np.abs(np.log1p(sim_h[:, 1]) - np.log1p(real_h))
+    imp = e_base - e_cand
+    with FrameObjective(rheld, hmodel, noise_sigmas(rheld), seed=seed) as oh:
+        held_pf = oh.per_frame(x[None])[0]
+    with FrameObjective(rfit, model, noise_sigmas(rfit), seed=seed) as of:
+        th_train = float(of(x[None])[0])
+    stat = {"name": "density of bright specks per megapixel", "real": float(np.mean(real_h)),
+            "base_sim": float(np.mean(sim_h[:, 0])), "candidate_sim": float(np.mean(sim_h[:, 1])),
+            "improvement": float(imp.mean()), "margin": max(0.15, 2.0 * bootstrap_se(imp, seed=seed)),
+            "per_frame_improvement": imp.tolist()}
+    return {"x": x, "theta_train": th_train, "held_pf": held_pf, "params": model.params_of(x),
+            "model_effects": ["marine_snow"], "fit": None, "res": "high", "statistic": stat}
+
+
+class MarineSnowJudge(Judge):
+    effect = "marine_snow"
+    free = ("density", "brightness", "size")
+    res = "high"
+    kind = "statistic"
+    least_squares = False
+
+    def refit(self, job, current):
+        r = snow_refit(job.R_hi, job.fit_f, job.sel_f, current.base, job.fog, job.seed)
+        return Refit(effect=self.effect, effects=(self.effect,), x=r["x"], params=r["params"],
+                     theta_fit=r["theta_train"], sel_pf=r["held_pf"], statistic=r["statistic"])
+
+    def accept(self, r, current, margin):
+        st = r.statistic
+        ok = st["improvement"] > st["margin"]
+        return ok, st["improvement"] / (3 * st["margin"]) if ok else 0.0
+
+    def explain(self, e, gain, sig):
+        dens = sig.stats.get("positive_per_mpx") if sig is not None else None
+        extra = f" ({dens:.0f} bright specks per megapixel, new in every frame)" if dens is not None else ""
+        return (f"marine snow: small bright particles in the lit water{extra}, about {e.get('density', 0):.0f} "
+                f"per m³ of {e.get('size', 0):.1f} mm; {gain}")

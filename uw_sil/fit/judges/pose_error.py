@@ -1,0 +1,137 @@
+"""Diagnosis plug-in of a recorded pose that is off (:mod:`uw_sil.sim.effects.pose_error`).
+
+Fitted by least squares on the fit frames from the edge shifts of the signature test (both directions
+tried), judged on the held-out frames by θ with the frames' geometry moved at full resolution, or by the
+held-out residual (mean squared real - sim, relative improvement per frame, bootstrapped) when θ on reduced
+frames cannot see a sub-pixel shift (θ must then not fall beyond the margin). An accepted correction is
+applied to the frames themselves (re-rendered geometry) for the rest of the selection.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+
+from ..diagfit import EffectModel, ls_fit
+from ..residuals import corrected_frame, reduce_frame
+from .base import Judge, Refit, bootstrap_se
+
+
+def pose_hint(motion, sign: float = 1.0) -> dict:
+    """Pose correction from per-frame image motion of the object (ECC: shift dx, dy and rotation, pixels):
+    for a bias ``X_true = R X_rec + t`` a point near the axis at range z moves by about
+    ``du = fx (ry + tx / z)``, ``dv = fy (-rx + ty / z)``, and the image turns by ``rz``; least squares over
+    the frames (ranges differ, which separates rotation from translation). ``sign`` flips the direction
+    (the alignment's convention); both are tried."""
+    if len(motion) < 2:
+        return {}
+    z = np.array([m[0] for m in motion])
+    du = np.array([m[1] / m[4] for m in motion]) * sign
+    dv = np.array([m[2] / m[5] for m in motion]) * sign
+    ang = np.array([m[3] for m in motion]) * sign
+    A = np.stack([np.ones_like(z), 1.0 / z], 1)
+    (ry, tx), *_ = np.linalg.lstsq(A, du, rcond=None)
+    (mrx, ty), *_ = np.linalg.lstsq(A, dv, rcond=None)
+
+    def clip(v, b):
+        return float(np.clip(v, -b, b))
+
+    return {"tx": clip(tx, 0.15), "ty": clip(ty, 0.15), "rx": clip(-mrx, 0.06), "ry": clip(ry, 0.06),
+            "rz": clip(float(np.median(ang)), 0.06)}
+
+
+class PoseErrorJudge(Judge):
+    effect = "pose_error"
+    free = ("tx", "ty", "tz", "rx", "ry", "rz")
+    fixed = {"jitter_t": 0.0, "jitter_r": 0.0}
+    res = "high"
+    sigma = 0.03
+    absorb = True
+
+    def start(self, job):
+        s = self.signature(job)
+        return pose_hint((s.hint.get("motion") if s is not None else None) or [])
+
+    def refit(self, job, current):
+        from ...sim.effects import EFFECT_ORDER
+
+        names = tuple(e for e in EFFECT_ORDER if e in current.effects or e == self.effect)
+        values = {e: dict(current.values.get(e, {})) for e in current.effects}
+        values[self.effect] = dict(self.fixed)
+        free = {e: () for e in current.effects}
+        free[self.effect] = self.free_params()
+        rfit = job.reduced(job.fit_f)
+        rsel = job.reduced(job.sel_f)
+        model = EffectModel(rfit, names, values=values, free=free, fog=job.fog, seed=job.seed)
+        fit_idx = {f.index for f in job.fit_f}
+        s = self.signature(job)
+        motion = [m for m in ((s.hint if s is not None else {}).get("motion") or []) if m[6] in fit_idx]
+
+        def mse(mdl, rfs, X):
+            out = np.zeros((len(X), len(rfs)))
+            for k, rf in enumerate(rfs):
+                sims = mdl.simulate(k, X) * 255.0
+                out[:, k] = ((sims - rf.image[None]) ** 2).mean(axis=(1, 2, 3))
+            return out
+
+        xs = [model.x0(current.base)] + [model.x0(current.base, {self.effect: pose_hint(motion, sg)})
+                                         for sg in (1.0, -1.0)]
+        e = mse(model, rfit, np.stack(xs)).mean(axis=1)
+        x = ls_fit(model, xs[int(np.argmin(e))], stride=1, max_nfev=10)
+        hmodel = model.like(rsel, seed=job.seed + 50)
+        eh = mse(hmodel, rsel, np.stack([hmodel.x0(current.base), x]))
+        imp = (eh[0] - eh[1]) / np.maximum(eh[0], 1e-9)
+        pose = model.params_of(x)["effects"][self.effect]
+        # held-out θ of the corrected pose: the frames' geometry moved at full resolution, reduced as every
+        # frame is, scored with the current model
+        sel_c = [corrected_frame(f, {self.effect: pose}) for f in job.sel_f]
+        fit_c = [corrected_frame(f, {self.effect: pose}) for f in job.fit_f]
+        sel_pf = _score_current(job, current, sel_c, 50)
+        theta_fit = float(_score_current(job, current, fit_c, 0).mean())
+        stat = {"name": "mean squared residual (grey levels²)", "real": 0.0, "base_sim": float(eh[0].mean()),
+                "candidate_sim": float(eh[1].mean()), "improvement": float(imp.mean()),
+                "margin": max(0.02, 2.0 * bootstrap_se(imp, seed=job.seed)), "per_frame_improvement": imp.tolist()}
+        params = model.params_of(x)
+        return Refit(effect=self.effect, effects=names, x=x, params=params, theta_fit=theta_fit, sel_pf=sel_pf,
+                     model=model, statistic=stat, extra={"corrected": (fit_c, sel_c)})
+
+    def accept(self, r, current, margin):
+        gain = float(np.mean(r.sel_pf - current.sel_pf))
+        st = r.statistic
+        if gain > margin:
+            return True, gain / margin
+        ok = st["improvement"] > st["margin"] and gain > -margin
+        return ok, st["improvement"] / st["margin"] if ok else 0.0
+
+    def absorb_into(self, job, current, r):
+        """Job and current model with the correction applied to every frame's geometry."""
+        fit_c, sel_c = r.extra["corrected"]
+        R = {"R_hi": dict(job.R_hi), "R_lo": dict(job.R_lo), "R_ls": dict(job.R_ls)}
+        for old, new in zip(job.fit_f + job.sel_f, fit_c + sel_c):
+            for key, d in R.items():
+                src = getattr(job, key).get(id(old))
+                if src is not None:
+                    d[id(new)] = reduce_frame(new, src.factor)
+        job2 = replace(job, fit_f=list(fit_c), sel_f=list(sel_c), **R)
+        absorbed = {**current.absorbed, self.effect: r.params["effects"][self.effect]}
+        return job2, replace(current, theta_fit=r.theta_fit, sel_pf=np.asarray(r.sel_pf), absorbed=absorbed)
+
+    def explain(self, e, gain, sig):
+        t = 100 * math.sqrt(sum(e.get(k, 0) ** 2 for k in ("tx", "ty", "tz")))
+        rot = math.degrees(math.sqrt(sum(e.get(k, 0) ** 2 for k in ("rx", "ry", "rz"))))
+        sh = sig.stats.get("shift_px_median") if sig is not None else None
+        extra = f"; edges in the recording are shifted by ~{sh:.1f} px against the simulation" if sh else ""
+        return f"the recorded panel pose is off by about {t:.1f} cm and {rot:.2f}°{extra}; {gain}"
+
+
+def _score_current(job, current, frames, seed_offset) -> np.ndarray:
+    """θ per frame of the current model on (corrected) frames at the high resolution."""
+    from ..diagfit import FrameObjective, noise_sigmas
+
+    factor = job.R_hi[id(job.fit_f[0])].factor
+    rf = [reduce_frame(f, factor) for f in frames]
+    m = EffectModel(rf, current.effects, values=current.values, free={e: () for e in current.effects}, fog=job.fog,
+                    seed=job.seed + seed_offset)
+    with FrameObjective(rf, m, noise_sigmas(rf), seed=job.seed) as ob:
+        return ob.per_frame(m.x0(current.base)[None])[0]

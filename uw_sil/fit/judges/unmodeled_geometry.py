@@ -1,0 +1,28 @@
+"""Diagnosis plug-in of a seafloor the scene model lacks (:mod:`uw_sil.sim.effects.unmodeled_geometry`)."""
+from __future__ import annotations
+
+from .base import Judge
+
+
+class UnmodeledGeometryJudge(Judge):
+    effect = "unmodeled_geometry"
+    free = ("floor_y", "tilt", "albedo", "contrast")
+    physical_bounds = ("contrast",)        # a share of 0 or 1
+    res = "low"
+    sigma = 0.12
+    alt_starts = ({"floor_y": -0.8, "albedo": 1.0, "contrast": 1.0},
+                  {"floor_y": -2.0, "albedo": 1.0, "contrast": 0.5},
+                  {"floor_y": -4.5, "albedo": 1.3, "contrast": 0.3})
+
+    def order(self, job):
+        s, p = self.signature(job), job.prox.get(self.effect)
+        sig = s.score if s is not None and s.judged else 0.0
+        return max(sig, p.explained / 0.25 if p is not None else 0.0)
+
+    def start(self, job):
+        return {"floor_y": -0.9, "albedo": 0.8, "contrast": 0.6}
+
+    def explain(self, e, gain, sig):
+        return (f"the recording shows structure where the scene model has open water — a seafloor about "
+                f"{abs(e.get('floor_y', 0)):.1f} m below the panel origin (albedo x{e.get('albedo', 1):.2f}, texture "
+                f"contrast {e.get('contrast', 1):.2f}); {gain}")
