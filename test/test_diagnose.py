@@ -192,3 +192,79 @@ def test_forward_scatter_is_named_beside_dense_marine_snow(tmp_path):
     doc = json.loads(js.read_text())
     assert {v["effect"] for v in doc["verdict"]} == {"marine_snow", "forward_scatter"}, doc["verdict"]
     assert set(doc["final"]["effects"]) == {"marine_snow", "forward_scatter"}
+
+
+def test_every_effect_has_a_plug_in():
+    """Adding an effect to the simulator without telling the diagnosis how to refit and judge it fails here."""
+    from uw_sil.fit.judges import JUDGES
+    from uw_sil.sim.effects import EFFECTS
+
+    assert set(JUDGES) == set(EFFECTS)
+    for name, j in JUDGES.items():
+        assert j.effect == name
+        assert set(j.free_params()) <= set(EFFECTS[name].param_names)
+        assert j.kind in ("theta", "statistic")
+
+
+def test_every_effect_is_refitted_and_the_selection_is_listed(diagnoses):
+    """No screen vetoes an effect: the first round refits every effect judged by θ, and the effects new in
+    every frame are judged by their statistics; the JSON lists every round."""
+    from uw_sil.fit.judges import JUDGES
+
+    for name in CASES:
+        doc = diagnoses[name]
+        first = {c["effect"] for c in doc["candidates"] if c["round"] == 1}
+        assert first == {e for e, j in JUDGES.items() if j.kind == "theta"}, (name, first)
+        stat = {c["effect"] for c in doc["candidates"] if c.get("criterion") == "statistic"}
+        assert stat == {e for e, j in JUDGES.items() if j.kind == "statistic"}
+        steps = doc["selection"]
+        assert steps[0]["model"] == "base" and steps[0]["round"] == 1
+        chosen = [s["chosen"] for s in steps if s["chosen"]]
+        assert chosen == [e for e in doc["final"]["effects"] if JUDGES[e].kind == "theta"]
+
+
+def test_a_nested_model_never_ends_below_the_model_it_contains(bags, monkeypatch):
+    """Plant an optimizer that returns a bad point (the effect at the far end of its box): the refit must
+    keep the current model's optimum (effect neutral), so its θ on the fit frames is not below the base
+    model's; without the invariant the candidate's θ on the fit frames falls well below it."""
+    import uw_sil.fit.judges.base as jb
+    from uw_sil.fit.diagfit import ModelFit
+    from uw_sil.fit.diagnose import diagnose_bag
+
+    real_fit = jb.fit_model
+
+    def bad_fit(model, rframes, noise, x0, **kw):
+        fit = real_fit(model, rframes, noise, x0, max_iter=1, popsize=4)
+        lo, hi = model.bounds()
+        x = np.array(x0, float)
+        x[7:] = lo[7:]                            # vignetting k1 = -1.2, k2 = -0.6: corners black
+        return ModelFit(model, x, fit.theta_train, fit.theta_start, fit.n_evals, 1, "planted", 0.0, 0)
+
+    monkeypatch.setattr(jb, "fit_model", bad_fit)
+    doc = diagnose_bag(bags["control"], k=6, effects_allowed=["vignetting"]).to_json()
+    cand = next(c for c in doc["candidates"] if c["effect"] == "vignetting")
+    base_fit_theta = doc["selection"][0]["theta_train"]
+    assert cand["kept_current_optimum"]
+    assert cand["theta_train"] >= base_fit_theta - 1e-9
+    assert cand["fit"]["theta_fit_optimizer"] < base_fit_theta - 0.01      # the planted point was worse
+    assert doc["verdict"] == []
+
+
+def test_doubts_lower_confidence():
+    """A fitted value on its box bound or outside deep-sea ranges is said, and costs confidence."""
+    from uw_sil.fit.diagnose import _confidence, base_doubts
+    from uw_sil.fit.judges import JUDGES
+
+    lamp = JUDGES["artificial_light"]
+    ok = {"offset_x": 0.4, "offset_y": -0.2, "toe_in": 0.1, "half_angle": 0.6, "shape": 2.0, "balance": 0.5,
+          "power": 1.0, "fill": 0.0, "veil": 0.01}
+    assert lamp.plausibility(ok) == []                 # fill 0 (lamps alone) is physics, not a box edge
+    near = dict(ok, offset_x=0.01, offset_y=0.0)
+    assert any("0.3-1.5 m" in d for d in lamp.plausibility(near))
+    edge = dict(ok, power=5.0)
+    assert any("power" in d and "bound" in d for d in lamp.plausibility(edge))
+    bc = JUDGES["backscatter_coefficient"].plausibility({"ratio_r": 5.9, "ratio_g": 1.0, "ratio_b": 1.0, "decay": 0.2})
+    assert bc and "β_B/β_D" in bc[0]
+    assert _confidence(3.0, []) > _confidence(3.0, ["x"]) > _confidence(3.0, ["x", "y"])
+    assert base_doubts({"a_r": 0.4, "a_g": 0.0004, "a_b": 0.1, "b_r": 0, "b_g": 0, "b_b": 0, "rho_f": 0.3})
+    assert not base_doubts({"a_r": 0.4, "a_g": 0.1, "a_b": 0.1, "b_r": 0, "b_g": 0, "b_b": 0, "rho_f": 0.0})

@@ -45,7 +45,7 @@ JSON schema (``schema_version`` 1)::
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from types import SimpleNamespace
 from typing import Callable, Optional
 
@@ -224,6 +224,9 @@ PATIENCE = 6
 #: Candidates carried into the rounds after the first: those that raised held-out θ in the first round,
 #: best first (the first round refits every effect).
 LATER_CANDIDATES = 3
+#: CMA-ES iterations of the candidates' first, cheap refit in each round (after their least-squares start);
+#: the round's winner is then refitted with the base fit's full budget from that point.
+CHEAP_ITER = 12
 
 
 def _confidence(strength: float, doubts: list) -> float:
@@ -353,9 +356,10 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
             break
         t0 = time.perf_counter()
         results = {}
+        cheap = replace(job, max_iter=min(job.max_iter, CHEAP_ITER))
         for e in cands:
             say(f"round {rnd}: refitting {current.name} + {e}")
-            results[e] = JUDGES[e].refit(job, current)
+            results[e] = JUDGES[e].refit(cheap, current)
         best, rows = None, []
         for e, r in results.items():
             margin = margin_for(r.sel_pf - current.sel_pf, len(cands), seed=seed)
@@ -376,6 +380,11 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
         e, r, strength, margin = best
         before = float(current.sel_pf.mean())
         judge = JUDGES[e]
+        if judge.kind == "theta" and not judge.absorb and job.max_iter > cheap.max_iter:
+            say(f"round {rnd}: refitting {current.name} + {e} with the full budget")
+            r_full = judge.refit(job, current, x_starts=[r.x])
+            candidates.append({**_candidate_row(rnd, current, e, r_full, margin, True, strength), "full_refit": True})
+            r = r_full
         if judge.absorb:
             job, current = judge.absorb_into(job, current, r)
         else:

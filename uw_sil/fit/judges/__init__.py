@@ -15,6 +15,7 @@ from .artificial_light import ArtificialLightJudge
 from .backscatter_coefficient import BackscatterCoefficientJudge
 from .base import Current, Job, Judge, Refit, margin_for, theta_refit
 from .camera_response import CameraResponseJudge
+from .compression import CompressionJudge
 from .forward_scatter import ForwardScatterJudge
 from .marine_snow import MarineSnowJudge
 from .pose_error import PoseErrorJudge
@@ -29,6 +30,7 @@ def _registry() -> dict:
     from ...sim.effects import EFFECT_ORDER
 
     made = {j.effect: j for j in (ArtificialLightJudge(), BackscatterCoefficientJudge(), CameraResponseJudge(),
+                                  CompressionJudge(),
                                   ForwardScatterJudge(), MarineSnowJudge(), PoseErrorJudge(), SensorNoiseJudge(),
                                   UnmodeledGeometryJudge(), VignettingJudge())}
     return {n: made[n] for n in EFFECT_ORDER if n in made}

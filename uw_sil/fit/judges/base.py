@@ -226,8 +226,10 @@ class Judge:
 
     # ------------------------------------------------------------------ refit and criterion
 
-    def refit(self, job: Job, current: Current) -> Refit:
-        return theta_refit(job, current, self)
+    def refit(self, job: Job, current: Current, x_starts: Optional[list] = None) -> Refit:
+        """Refit the current model plus this effect; ``x_starts``: whole parameter vectors of the same model
+        to start from too (an earlier, cheaper refit)."""
+        return theta_refit(job, current, self, x_starts=x_starts)
 
     def accept(self, r: Refit, current: Current, margin: float) -> tuple:
         """``(accepted, strength)``: held-out θ gain over the current model beyond ``margin``; strength is the
@@ -269,7 +271,8 @@ def _sigma0(judges) -> np.ndarray:
     return np.concatenate([BASE_SIGMA0 * 1.5] + [np.full(len(j.free_params()), j.sigma) for j in judges])
 
 
-def theta_refit(job: Job, current: Current, judge: Judge, starts: Optional[list] = None) -> Refit:
+def theta_refit(job: Job, current: Current, judge: Judge, starts: Optional[list] = None,
+                x_starts: Optional[list] = None) -> Refit:
     """Refit the current model plus ``judge.effect`` jointly on the fit frames (θ, CMA-ES with the common
     budget, started from the best of: the current optimum with the effect neutral, the plug-in's start, least
     squares from those and from the plug-in's alternative starts) and score it per held-out frame.
@@ -290,7 +293,8 @@ def theta_refit(job: Job, current: Current, judge: Judge, starts: Optional[list]
     s0 = judge.start(job)
     x_hint = model.x0(current.base, {**cur, judge.effect: s0})
     cand = [x_id, x_hint] + [model.x0(current.base, {**cur, judge.effect: s}) for s in (starts or [])]
-    if judge.least_squares:
+    cand += [np.clip(np.asarray(x, float), *model.bounds()) for x in (x_starts or [])]
+    if judge.least_squares and not x_starts:
         lmodel = model.like(job.reduced(job.fit_f, "ls"))
         for xs in [x_hint] + [lmodel.x0(current.base, {**cur, judge.effect: {**s0, **a}}) for a in judge.alt_starts]:
             cand.append(ls_fit(lmodel, xs, stride=1, max_nfev=job.ls_nfev))

@@ -156,7 +156,7 @@ class SensorNoiseJudge(Judge):
     kind = "statistic"
     least_squares = False
 
-    def refit(self, job, current):
+    def refit(self, job, current, x_starts=None):
         r = noise_refit(job.fit_f, job.sel_f, current.base, self.signature(job), job.fog, job.seed, current.sel_pf,
                         current.theta_fit, exclude=job.exclude or None)
         return Refit(effect=self.effect, effects=(self.effect,), x=r["x"], params=r["params"],
