@@ -10,7 +10,8 @@ and ``f(z)`` the fog factor of density ``rho_F``:
 Fog is applied to the rendered scene before attenuation, with the background as fog colour
 (Gazebo's ``exp2`` fog ``f = exp(-(rho_F z)^2)`` by default, ``exp``: ``f = exp(-rho_F z)``).
 Without fog (``rho_F = 0``, ``f = 1``) this is Eq. 1, ``I = i e + (1 - e) b`` (with the range for the
-paper's z, below), as in the UUV Simulator camera plugin. Expanding the brackets gives the form used for computation,
+paper's z, below), as in the UUV Simulator camera plugin. Expanding the brackets gives the form used
+for computation,
 
     I_c = b_c + T_c * (i_c - b_c),   T_c = e_c(r) * f(z),
 
