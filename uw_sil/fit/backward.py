@@ -466,10 +466,11 @@ def fit_frames(frames: list, method: str = "pso", color_model: str = "rgb", chan
 def linear_start(frames: list, space: ParamSpace, fog: str = "exp2") -> np.ndarray:
     """A closed-form first estimate of all 7 parameters from the real frames and their renders.
 
-    Not in the paper, whose PSO starts from a random swarm (Algorithm 1, line 1). From such a start,
-    on synthetic 640x480 trials, the paper's PSO stalled far from the truth (θ ≈ 0.75 against 0.96 at
-    the truth) and CMA-ES needed more than 100 iterations; from this estimate CMA-ES reached the truth's
-    θ in 40 (see :func:`fit_frames`, the README's deviations and ``bench/bench_convergence.py``).
+    Not in the paper, whose PSO starts from a random swarm (Algorithm 1, line 1). From the centre of
+    the bounds the paper's PSO stalled far from the truth on every synthetic trial tried (θ ≈ 0.75
+    against 0.96 at the truth) and CMA-ES needed more than 100 iterations at 640x480; from this
+    estimate CMA-ES reached the truth's θ in 40 (see :func:`fit_frames`, the README's deviations and
+    ``bench/bench_convergence.py``).
 
     The background is the mean colour of the real water pixels (Eq. 1 at r = inf). On panel pixels,
     Eq. 1 with fog is ``I - b = T (i - b)`` with ``-ln T = a_c r + rho_F^2 z^2`` (exp2 fog), linear in
