@@ -1,4 +1,4 @@
-"""Does fog get over-emphasized when blur is not modelled? (the paper's observation, Sec. 4)
+"""Does fog get over-emphasized when blur is not modelled? (the paper's observation, Sec. 3.5)
 
 Synthesizes two trials with the same true parameters: one exactly as the model says, one with
 forward-scatter-like blur added (Gaussian, sigma growing with range, a physical effect the 7-parameter

@@ -26,7 +26,8 @@ def _transmission():
 
 
 def _haze(J, t, A):
-    return (J * t[..., None] + np.asarray(A) * (1.0 - t[..., None])).astype(np.float32)  # He et al. Eq. 1
+    # He et al.'s haze imaging model
+    return (J * t[..., None] + np.asarray(A) * (1.0 - t[..., None])).astype(np.float32)
 
 
 def _dark(img, channels=(0, 1, 2), patch=15):
@@ -57,12 +58,13 @@ def test_recovers_scene_radiance():
     I = _haze(J, t, A_TRUE)
     input_err = np.abs(I[SCENE] - J[SCENE]).mean()
     assert input_err > 0.15
-    # without omega's haze and without refinement the inversion is near exact (He et al. Eq. 11 + 16)
+    # without omega's haze and without refinement the inversion is near exact (transmission and recovery
+    # of He et al. with omega = 1: CVPR 2009 Eq. 12 (or 11) and Eq. 16, see uw_sil/enhance/dcp.py)
     exact = dehaze_dcp(I, omega=1.0, guided_radius=0)
     assert np.abs(exact.image[SCENE] - J[SCENE]).mean() < 0.02
-    # the paper's settings: omega 0.95 leaves a little haze, the guided filter smooths t
-    paper = dehaze_dcp(I)
-    assert np.abs(paper.image[SCENE] - J[SCENE]).mean() < 0.25 * input_err
+    # He et al.'s settings: omega 0.95 leaves a little haze, the guided filter smooths t
+    default = dehaze_dcp(I)
+    assert np.abs(default.image[SCENE] - J[SCENE]).mean() < 0.25 * input_err
 
 
 def test_airlight_is_brightest_input_among_top_dark_channel_pixels():

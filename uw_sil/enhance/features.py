@@ -1,8 +1,9 @@
 """Feature matches between two frames, per descriptor (the paper's Table 2 and Fig. 5).
 
-The paper judges a dehazing method by how many local features it lets a matcher pair between frames
-of the panel: "matches with Euclidean distance < 0.25 in feature space". Descriptors differ in kind
-and scale, so that rule needs a normalization; the one used here:
+The paper judges a dehazing method by how many local features it lets a matcher pair between images
+of the panel (Sec. 4.3): "the number of feature matches, found through k-nearest-neighbor, whose
+Euclidean distance is less than a threshold of 0.25 in the feature space". Descriptors differ in kind
+and scale, so that rule needs a normalization, which the paper does not give; the one used here:
 
 ========== ======================================== ====================== ===================
 descriptor keypoints                                descriptor (size)      distance, in [0, *]
@@ -25,12 +26,12 @@ AKAZE      AKAZE (OpenCV)                           MLDB, binary 486 bit   Hammi
   of the bits would be a distance of 1.0): compare counts down a column of the table (one descriptor,
   several dehazing methods), not across columns.
 - Raw matches: mutual nearest neighbours (OpenCV's brute-force cross-check) whose distance is below
-  the threshold. A cross-check rather than Lowe's ratio test: it needs no second parameter and is
-  symmetric in the two frames.
-- Verified matches: the inliers of a homography fitted to the raw matches by RANSAC (reprojection
-  error ``RANSAC_REPROJ_PX = 3`` px, 2000 iterations, confidence 0.995; the panel is planar). Any 4
-  matches fit a homography exactly, so fewer than ``MIN_VERIFIED = 8`` inliers count as 0.
-  OpenCV's RNG is seeded (``cv2.setRNGSeed``) before each fit.
+  the threshold. The paper names k-nearest-neighbour matching without k or a ratio; a cross-check
+  rather than Lowe's ratio test: it needs no second parameter and is symmetric in the two frames.
+- Verified matches (not in the paper, which counts the raw ones): the inliers of a homography fitted
+  to the raw matches by RANSAC (reprojection error ``RANSAC_REPROJ_PX = 3`` px, 2000 iterations,
+  confidence 0.995; the panel is planar). Any 4 matches fit a homography exactly, so fewer than
+  ``MIN_VERIFIED = 8`` inliers count as 0. OpenCV's RNG is seeded (``cv2.setRNGSeed``) before each fit.
 - Deterministic: keypoints are put in a fixed order (by position, size, angle, response) before
   matching, so a given pair of images always gives the same matches.
 

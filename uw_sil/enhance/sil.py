@@ -14,16 +14,18 @@ image alone.
 
 The background ``b``: the fitted one, or with ``b_from_frame`` re-estimated on every frame from the real
 water pixels (:func:`estimate_background`: the sim's water mask eroded by ``erode_px``, per-channel
-median), for drifting lamps or turbidity. A frame without enough water falls back to the fitted ``b``,
-with a warning in :attr:`EnhanceResult.warnings`.
+median), for drifting lamps or turbidity. The paper takes "the average intensity value of the free
+(water) region" of the frame (Sec. 4.2); the erosion and the median are ours (reasons there). A frame
+without enough water falls back to the fitted ``b``, with a warning in :attr:`EnhanceResult.warnings`.
 
 ``t0`` (default 0.1) caps the gain ``1/T`` at ``1/t0``: far pixels are restored only partly and their
 noise is amplified by up to ``1/t0`` (see :class:`~uw_sil.sim.optics.PreparedInverse`).
 
 References
 ----------
-.. [1] O. Álvarez-Tuñón, A. Jardón, C. Balaguer, "Generation and Processing of Simulated Underwater
-   Images for Infrastructure Visual Inspection with UUVs", Sensors 19(24):5497, 2019 (Sec. 4).
+.. [1] T. Doernbach, A. Gomez Chavez, C. A. Mueller and A. Birk, "High-Fidelity Deep-Sea Perception
+   Using Simulation in the Loop", IFAC conference paper, 2018 (Sec. 4.2: Eq. 5 and Eq. 1 solved for
+   ``i_c``; Sec. 4.3, Fig. 4, Table 2).
 .. [2] K. He, J. Sun, X. Tang, "Single Image Haze Removal Using Dark Channel Prior", IEEE TPAMI
    33(12):2341-2353, 2011.
 .. [3] P. Drews Jr., E. do Nascimento, F. Moraes, S. Botelho, M. Campos, "Transmission Estimation in

@@ -12,8 +12,8 @@ noise). :func:`fit_model` maximizes it with CMA-ES and stops on convergence.
 References
 ----------
 .. [1] N. Hansen, "The CMA Evolution Strategy: A Tutorial", arXiv:1604.00772, 2016.
-.. [2] O. Álvarez-Tuñón, A. Jardón and C. Balaguer, "Generation and Processing of Simulated Underwater
-   Images for Infrastructure Visual Inspection with UUVs", Sensors 19(24), 5497, 2019 (θ, Eq. 1).
+.. [2] T. Doernbach, A. Gomez Chavez, C. A. Mueller and A. Birk, "High-Fidelity Deep-Sea Perception
+   Using Simulation in the Loop", IFAC conference paper, 2018 (θ: Eq. 4; the base model: Eq. 1).
 """
 from __future__ import annotations
 

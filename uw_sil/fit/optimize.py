@@ -7,9 +7,11 @@ The backward optimization of the simulator's 7 parameters maximizes an image sim
 Methods
 -------
 ``"pso"`` (default, as in the paper)
-    Particle swarm optimization by the ``pyswarm`` package (pinned 1.1.2) with the paper's
-    settings :data:`PSO_PAPER_SETTINGS`: 20 particles, inertia ``omega = 0.4``, cognitive
-    ``phi_p = 0.3`` and social ``phi_g = 0.3`` coefficients, at most 100 iterations, and
+    Particle swarm optimization by the ``pyswarm`` package (pinned 1.1.2; the paper's footnote 1
+    names pyswarm as its implementation) with the paper's settings :data:`PSO_PAPER_SETTINGS`
+    (Sec. 3.4, Algorithm 1): 20 particles, inertia ``omega = 0.4``, cognitive ``phi_p = 0.3`` and
+    social ``phi_g = 0.3`` coefficients (pyswarm's ``omega``, ``phip``, ``phig``; the paper calls
+    them agent velocity, per-agent and swarm inertia), at most ``t_max = 100`` iterations, and
     pyswarm's own stopping rules (``minstep = minfunc = 1e-8``). See "How pyswarm is driven".
 ``"cmaes"``
     CMA-ES by the ``cma`` package (ask/tell; one call per generation; bounds by ``cma``'s

@@ -7,7 +7,7 @@ pixels.
 
 PSNR = 10 log10(L^2 / MSE), MSE averaged over the masked pixels and the channels.
 
-SSIM (Wang et al. 2004) with the paper's constants: Gaussian window of standard deviation 1.5 truncated
+SSIM (Wang et al. 2004) with Wang et al.'s constants: Gaussian window of standard deviation 1.5 truncated
 to 11x11 (OpenCV ``GaussianBlur``, borders reflected), ``K1 = 0.01``, ``K2 = 0.03``; the SSIM map is
 computed per channel over the whole image, averaged over the channels, then over the masked pixels (a
 window near the mask's edge sees its neighbourhood, as it does in the full image).

@@ -1,6 +1,6 @@
 """Feature similarity index FSIM / FSIMc, a faithful port of the official ``FeatureSIM.m``.
 
-This is the paper's criterion theta_1 (Sec. 3.3). It follows the MATLAB reference code of
+This is the paper's criterion theta_1 (Sec. 3.3, Eq. 2). It follows the MATLAB reference code of
 Zhang et al. (``FeatureSIM.m`` v1.0 with Kovesi's ``phasecong2`` and ``lowpassfilter``)
 operation by operation, including the details where re-implementations usually drift:
 

@@ -1,17 +1,13 @@
-"""HSV region-histogram similarity theta_2 (paper Sec. 3.3, Eq. 3, with a corrected sign).
+"""HSV region-histogram similarity theta_2 (paper Sec. 3.3, Eq. 3, turned into a similarity).
 
 Both images are split into ``regions x regions`` rectangles; in every region the histogram of
 each selected HSV channel is compared with the Bhattacharyya distance, the distances are
-averaged over the channels and the median is taken over the regions. The paper adds this
-*distance* to the FSIMc *similarity* and maximizes the sum (its Eq. 4), which rewards
-histograms that disagree; its Algorithm 1 also takes a median over channels where Eq. 3 takes
-the mean. Here
+averaged over the channels and the median is taken over the regions (Eq. 3). Here
 
     theta_2 = 1 - median_r mean_{c in C} d_B(h_c^r(ref), h_c^r(cand)),
 
-a similarity in [0, 1] (1 = identical histograms in at least half of the regions), so that
-maximizing ``(theta_1 + theta_2) / 2`` makes the histograms agree; the channel mean follows
-Eq. 3.
+a similarity in [0, 1] (1 = identical histograms in at least half of the regions); why it differs
+from the paper's distance: :func:`hsv_histogram_similarity`, Notes.
 
 Colour conventions (float computation, no 8-bit quantisation of H/S/V):
 
@@ -27,9 +23,9 @@ Colour conventions (float computation, no 8-bit quantisation of H/S/V):
 
 References
 ----------
-.. [1] O. Álvarez-Tuñón, A. Jardón and C. Balaguer, "Generation and Processing of Simulated
-   Underwater Images for Infrastructure Visual Inspection with UUVs", Sensors 19(24), 5497, 2019,
-   doi:10.3390/s19245497. ("the paper" throughout uw_sil.)
+.. [1] T. Doernbach, A. Gomez Chavez, C. A. Mueller and A. Birk, "High-Fidelity Deep-Sea Perception
+   Using Simulation in the Loop", IFAC conference paper, 2018 (Sec. 3.3, Eq. 3). ("the paper"
+   throughout uw_sil.)
 .. [2] A. Bhattacharyya, "On a measure of divergence between two statistical populations defined by
    their probability distributions", Bull. Calcutta Math. Soc. 35, 99-109, 1943 (d_B).
 """
@@ -197,7 +193,7 @@ class HistogramReference:
         RGB reference image, uint8 or float in 0..255, at least ``regions`` pixels per side.
     channels : str
         Subset of ``"HSV"`` (any order/case): ``"HSV"`` all, ``"HS"`` colour only, ``"V"``
-        luminance only (the paper's "focus on colour or on luminance").
+        luminance only (the paper's "set focus on color or luminance", Sec. 3.3).
     regions : int
         The image is split into ``regions x regions`` rectangles (paper: 10).
     bins : None, int or dict
@@ -395,16 +391,18 @@ def hsv_histogram_similarity(ref, cand, channels: str = "HSV", regions: int = 10
 
     Notes
     -----
-    Deviation from the paper: its Eq. 3 defines the median distance itself and Eq. 4 adds it to
-    FSIMc, so maximizing would push the histograms apart; and its Algorithm 1 takes the median
-    over channels. Here the distance is turned into a similarity ``1 - d`` and the channel mean
-    of Eq. 3 is used. ``d_B`` is :func:`bhattacharyya_distance` (OpenCV's
-    ``HISTCMP_BHATTACHARYYA``). HSV is computed in float from the RGB values (no 8-bit
-    quantisation), hue bins are centred on red (circular hue).
+    Deviation from the paper: its Eq. 3 defines theta_2 as the median *distance* itself, Eq. 4
+    averages it with the FSIMc *similarity* into theta, and Algorithm 1 keeps the agent of the
+    largest theta (line 10), so as written the optimization rewards histograms that disagree. Here
+    the distance is turned into a similarity ``1 - d``, so that maximizing theta makes them agree.
+    Algorithm 1 (line 8) also takes the median over channels where Eq. 3 takes the mean: the mean of
+    Eq. 3 is used. The paper says neither the bins nor the HSV scaling; ``d_B`` is
+    :func:`bhattacharyya_distance` (OpenCV's ``HISTCMP_BHATTACHARYYA``). HSV is computed in float
+    from the RGB values (no 8-bit quantisation), hue bins are centred on red (circular hue).
 
     References
     ----------
-    .. [1] The project paper, Sec. 3.3, Eq. (3)-(4) and Algorithm 1.
+    .. [1] Doernbach et al. 2018 (see the module), Sec. 3.3, Eq. 3; Sec. 3.4, Eq. 4 and Algorithm 1.
     """
     check_image(ref, "ref")
     check_image(cand, "cand")

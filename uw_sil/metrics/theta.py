@@ -1,9 +1,9 @@
-"""The backward-optimization criterion theta = (theta_1 + theta_2) / 2 (paper Sec. 3.3, Eq. 4).
+"""The backward-optimization criterion theta = (theta_1 + theta_2) / 2 (paper Sec. 3.4, Eq. 4).
 
-theta_1 is FSIMc (:mod:`uw_sil.metrics.fsim`, a port of ``FeatureSIM.m``) and theta_2 the HSV
-region-histogram similarity (:mod:`uw_sil.metrics.histsim`, ``1 - median distance``; see there for the
-corrected sign of the paper's Eq. 3/4). Both are similarities in [0, 1], so the optimizer
-maximizes theta.
+theta_1 is FSIMc (paper Eq. 2; :mod:`uw_sil.metrics.fsim`, a port of ``FeatureSIM.m``) and theta_2 the
+HSV region-histogram similarity (Eq. 3 as ``1 - median distance``, :mod:`uw_sil.metrics.histsim`; why the
+paper's distance is not used: :func:`uw_sil.metrics.histsim.hsv_histogram_similarity`). Both are
+similarities in [0, 1], so the optimizer maximizes theta, as Algorithm 1 does.
 
 One real reference frame is compared with many simulated candidates: :class:`ThetaReference`
 does all reference-only work (phase congruency, gradient magnitude and chroma of the
@@ -12,9 +12,9 @@ reference, its region histograms) once in the constructor and then scores candid
 
 References
 ----------
-.. [1] O. Álvarez-Tuñón, A. Jardón and C. Balaguer, "Generation and Processing of Simulated
-   Underwater Images for Infrastructure Visual Inspection with UUVs", Sensors 19(24), 5497, 2019,
-   doi:10.3390/s19245497. ("the paper" throughout uw_sil.)
+.. [1] T. Doernbach, A. Gomez Chavez, C. A. Mueller and A. Birk, "High-Fidelity Deep-Sea Perception
+   Using Simulation in the Loop", IFAC conference paper, 2018 (Eq. 2-4, Algorithm 1). ("the paper"
+   throughout uw_sil.)
 .. [2] L. Zhang, L. Zhang, X. Mou and D. Zhang, "FSIM: A Feature Similarity Index for Image Quality
    Assessment", IEEE Trans. Image Processing 20(8), 2378-2386, 2011 (theta_1 = FSIMc).
 """
@@ -59,11 +59,9 @@ class ThetaReference:
     hist_mask : ndarray of bool (H, W), or a sequence of them, optional
         Pixels that count in theta_2 only (overrides ``mask`` there). With several masks,
         theta_2 is the mean of the per-mask theta_2 values. The backward optimizer passes the
-        rendered object mask and the water mask: with the paper's all-pixel histograms, the
-        median over the 10x10 regions is decided by water regions whenever the object covers
-        fewer than half of them, and theta_2 then carries no information about attenuation or
-        fog; with the object mask alone, the water colour is left to FSIMc, which weighs flat
-        water very little.
+        rendered object mask and the water mask, where the paper's histograms take all pixels
+        (that deviation and its reason: :class:`uw_sil.fit.backward.BackwardObjective`,
+        ``hist_pixels``).
     dtype : {numpy.float32, numpy.float64}
         Working precision of the candidate FFTs (float32: agrees with float64 to ~1e-7 in
         theta_1, about twice as fast).

@@ -12,8 +12,8 @@ Effects (:mod:`uw_sil.sim.effects`) extend it. Composition order, with ``i`` the
                                                                                   marine_snow; lamp veil)
     direct     D <- filter(D)                                                    (forward_scatter)
                I = D + B
-    sensor     I <- vignetting, camera response, noise; clipped to [0, 1]        (vignetting, camera_response,
-                                                                                  sensor_noise)
+    sensor     I <- vignetting, camera response, noise, JPEG; clipped to [0, 1]  (vignetting, camera_response,
+                                                                                  sensor_noise, compression)
 
 Without effects ``T_D = T_B = T`` and no veil: ``D + B = b + T (i - b)``, computed in exactly the
 arithmetic of :func:`uw_sil.sim.optics.degrade` (the results are bit-identical).

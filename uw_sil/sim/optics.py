@@ -9,23 +9,41 @@ and ``f(z)`` the fog factor of density ``rho_F``:
 
 Fog is applied to the rendered scene before attenuation, with the background as fog colour
 (Gazebo's ``exp2`` fog ``f = exp(-(rho_F z)^2)`` by default, ``exp``: ``f = exp(-rho_F z)``).
-Without fog (``rho_F = 0``, ``f = 1``) this is exactly Eq. 1, ``I = i e + (1 - e) b``, as in the
-UUV Simulator camera plugin. Expanding the brackets gives the form used for computation,
+Without fog (``rho_F = 0``, ``f = 1``) this is Eq. 1, ``I = i e + (1 - e) b`` (with the range for the
+paper's z, below), as in the UUV Simulator camera plugin. Expanding the brackets gives the form used
+for computation,
 
     I_c = b_c + T_c * (i_c - b_c),   T_c = e_c(r) * f(z),
 
 one exponential per pixel and channel. Pixels where nothing was hit (``r = inf``) take ``b_c``.
 
-The same model runs backwards on recorded frames (the paper's forward half, SIL dehazing): where the
-simulation has geometry, ``i_c = b_c + (I_c - b_c) / max(T_c, t0)`` (:func:`restore`, and
+The same model runs backwards on recorded frames (the paper's forward half, SIL dehazing, Sec. 4.2):
+where the simulation has geometry, ``i_c = b_c + (I_c - b_c) / max(T_c, t0)`` (:func:`restore`, and
 :class:`PreparedInverse` for the online per-frame path); other pixels are left as recorded.
+
+Deviations from the paper [1]_ (Sec. 3.1, Eq. 1 ``i*_c = i_c e^{-z a_c} + (1 - e^{-z a_c}) b_c``;
+Sec. 4.2, Eq. 5 ``t(z) = e^{-z a_c}``):
+
+* Range instead of depth: the paper writes the exponent with "the distance z to the object projected
+  on the camera pixel", taken from the simulator's depth camera. Here it is the Euclidean range ``r``
+  of the pixel: light travels along the ray, and the UUV Simulator camera plugin whose model Eq. 1
+  cites [2]_ also converts its depth image to range (``depth2rangeLUT``) before ``exp(-r a_c)``.
+* Fog: the paper adds the fog of its simulator, Gazebo, with its density as the 7th parameter
+  (Table 1), and says nothing of its law, its colour or how it combines with Eq. 1; the choices here
+  are those above (``exp2`` on the planar depth, colour ``b``, on the rendered scene before the
+  attenuation, as a renderer's fog acts).
+* The inverse divides by ``max(T, t0)``: the paper solves Eq. 1 for ``i_c`` with Eq. 5 unbounded,
+  which amplifies noise without limit on far pixels (see :class:`PreparedInverse`).
 
 References
 ----------
-.. [1] O. Álvarez-Tuñón, A. Jardón and C. Balaguer, "Generation and Processing of Simulated
-   Underwater Images for Infrastructure Visual Inspection with UUVs", Sensors 19(24), 5497, 2019,
-   doi:10.3390/s19245497. ("the paper" throughout uw_sil.)
-.. [2] UUV Simulator, ``uuv_gazebo_plugins`` underwater camera plugin (the same Eq. 1 per channel).
+.. [1] T. Doernbach, A. Gomez Chavez, C. A. Mueller and A. Birk, "High-Fidelity Deep-Sea Perception
+   Using Simulation in the Loop", IFAC conference paper, 2018 (Eq. 1, Eq. 5, Table 1). ("the paper"
+   throughout uw_sil.)
+.. [2] M. Marcusso, S. Scherer, M. Voss, L. Douat and T. Rauschenbach, "UUV Simulator: A Gazebo-based
+   package for underwater intervention and multi-robot simulation", OCEANS 2016 (Monterey), as the
+   paper cites it; the simulator's ``UnderwaterCameraROSPlugin`` (``uuv_sensor_ros_plugins``) applies
+   Eq. 1 per RGB channel on the range.
 """
 from __future__ import annotations
 
@@ -193,7 +211,7 @@ class PreparedRender:
 
 
 def invert_transmission(image, b, T, t0: float = 0.1) -> np.ndarray:
-    """Paper Eq. 1 solved for the clean radiance: ``i = b + (I - b) / max(T, t0)`` (elementwise, broadcasting).
+    """Paper Eq. 1 solved for the clean radiance (Sec. 4.2): ``i = b + (I - b) / max(T, t0)`` (elementwise).
 
     The one place of the inverse equation: :func:`restore`, :class:`PreparedInverse` (as the gain map
     ``1 / max(T, t0)``) and :meth:`uw_sil.sim.model.UnderwaterModel.restore` (after removing the

@@ -16,6 +16,7 @@ forward_scatter            direct      range-dependent blur of the direct signal
 vignetting                 sensor      radial falloff 1 + k1 rho^2 + k2 rho^4, the same every frame
 camera_response            sensor      tone curve, white-balance gains, black-level pedestal
 sensor_noise               sensor      Poisson-Gaussian noise, spatially correlated, fixed pattern
+compression                sensor      JPEG round trip: 8x8 block DCT quantized at IJG quality q, chroma 4:2:0
 =========================  ==========  ===========================================================
 
 :func:`parse_effects` reads the command-line form ``"artificial_light=strong,vignetting"`` (a bare name
@@ -32,6 +33,7 @@ from .artificial_light import ArtificialLight
 from .backscatter_coefficient import BackscatterCoefficient
 from .base import STAGES, Effect, EffectParam, ModelTerms
 from .camera_response import CameraResponse
+from .compression import Compression
 from .forward_scatter import ForwardScatter
 from .marine_snow import MarineSnow
 from .pose_error import PoseError
@@ -43,7 +45,7 @@ __all__ = ["EFFECTS", "EFFECT_ORDER", "SEVERITIES", "DEFAULT_SEVERITY", "get_eff
            "Effect", "EffectParam", "ModelTerms", "STAGES"]
 
 _ALL = (PoseError(), UnmodeledGeometry(), ArtificialLight(), BackscatterCoefficient(), MarineSnow(),
-        ForwardScatter(), Vignetting(), CameraResponse(), SensorNoiseEffect())
+        ForwardScatter(), Vignetting(), CameraResponse(), SensorNoiseEffect(), Compression())
 
 #: Names in composition order (stage order, then the order within a stage).
 EFFECT_ORDER = tuple(e.name for e in sorted(_ALL, key=lambda e: STAGES.index(e.stage)))
