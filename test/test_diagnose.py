@@ -268,3 +268,21 @@ def test_doubts_lower_confidence():
     assert _confidence(3.0, []) > _confidence(3.0, ["x"]) > _confidence(3.0, ["x", "y"])
     assert base_doubts({"a_r": 0.4, "a_g": 0.0004, "a_b": 0.1, "b_r": 0, "b_g": 0, "b_b": 0, "rho_f": 0.3})
     assert not base_doubts({"a_r": 0.4, "a_g": 0.1, "a_b": 0.1, "b_r": 0, "b_g": 0, "b_b": 0, "rho_f": 0.0})
+
+
+def test_blockiness_reads_the_quality_of_a_jpeg_round_trip():
+    """The compression plug-in's statistic: about 1 without block structure, rising as quality falls (the
+    JPEG round trip of the compression effect on a smooth noisy gradient, like open water)."""
+    from uw_sil.fit.judges.compression import blockiness
+    from uw_sil.sim.effects.compression import jpeg_roundtrip
+
+    rng = np.random.default_rng(1)
+    h, w = 240, 320
+    y, x = np.mgrid[0:h, 0:w]
+    img = np.stack([0.1 + 0.2 * x / w, 0.25 + 0.1 * y / h, 0.35 + 0.0 * x], -1)
+    img = np.clip(img + rng.normal(0, 2.0 / 255, img.shape), 0, 1).astype(np.float32)
+    lum = lambda im: 255.0 * (0.299 * im[..., 0] + 0.587 * im[..., 1] + 0.114 * im[..., 2])
+    b = [blockiness(lum(img))] + [blockiness(lum(jpeg_roundtrip(img, q))) for q in (95, 75, 50, 20)]
+    assert abs(b[0] - 1.0) < 0.05, b
+    assert all(b2 > b1 for b1, b2 in zip(b, b[1:])), b
+    assert b[-1] > 1.3, b

@@ -531,7 +531,7 @@ def cmd_diagnose(args) -> int:
     from .fit.diagnose import diagnose_bag, write_diagnosis_yaml
 
     diag = diagnose_bag(args.bag, k=args.frames or 8, model=args.model, image_topic=args.image_topic,
-                        seed=args.seed, max_candidates=args.max_candidates, fog=args.fog, progress=progress,
+                        seed=args.seed, max_effects=args.max_effects, fog=args.fog, progress=progress,
                         interrupt=_raise_if_interrupted)
     _raise_if_interrupted()
     for line in diag.summary_lines():
@@ -754,7 +754,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--report", help="write HTML + PNG report into this directory")
     g.add_argument("--params-out", help="ROS 2 parameters file for sim_camera with the extended model")
     g.add_argument("--node-name", default="/**")
-    g.add_argument("--max-candidates", type=int, default=3, help="effects refitted at most (leading ones)")
+    g.add_argument("--max-effects", type=int, default=4,
+                   help="effects in the final model at most (greedy forward selection stops there; default 4)")
     g.add_argument("--fog", choices=["exp2", "exp", "none"], default="exp2")
     g.add_argument("--seed", type=int, default=0)
     g.set_defaults(func=cmd_diagnose)

@@ -226,7 +226,7 @@ PATIENCE = 6
 LATER_CANDIDATES = 3
 #: CMA-ES iterations of the candidates' first, cheap refit in each round (after their least-squares start);
 #: the round's winner is then refitted with the base fit's full budget from that point.
-CHEAP_ITER = 12
+CHEAP_ITER = 6
 
 
 def _confidence(strength: float, doubts: list) -> float:

@@ -26,7 +26,7 @@ def _noise_vector(st: dict) -> np.ndarray:
 
 
 def noise_refit(fit_f, held_f, base_x, sig, fog, seed, ref_held_pf, base_theta_train,
-                exclude: Optional[dict] = None) -> dict:
+                exclude: Optional[dict] = None, effects: tuple = (), values: Optional[dict] = None) -> dict:
     """Sensor noise, fitted and judged at full resolution by noise statistics (it is new in every frame).
 
     The effect's parameters (shot gain, read noise, correlation, fixed patterns) are chosen by CMA-ES on the
@@ -42,16 +42,23 @@ def noise_refit(fit_f, held_f, base_x, sig, fog, seed, ref_held_pf, base_theta_t
     from ..optimize import optimize
     from ..signatures import luminance, noise_statistics, particle_exclusion
 
+    fixed = {e: () for e in effects}
+
     def prep(frames):
-        """per frame: noise-free simulation S, the recording's statistics, and the pixels every statistic of
-        that frame uses (hit: the model; excl: the recording's particles, left out of real and simulated)."""
+        """per frame: noise-free simulation S (the current model: base and its deterministic effects), the
+        recording's statistics, and the pixels every statistic of that frame uses (hit: the model; excl: the
+        recording's particles, left out of real and simulated)."""
         rfs = [reduce_frame(f, 1) for f in frames]
+        cur = EffectModel(rfs, effects, values=values, free=fixed, fog=fog, seed=seed) if effects else None
         S, real, hits = [], [], []
-        for f in frames:
+        for k, f in enumerate(frames):
             rr = f.render
-            p = np.clip(base_x, 0, None)
-            p[3:6] = np.clip(p[3:6], 0, 1)
-            S.append(degrade(rr.rgb, rr.range, rr.depth, p, fog=fog) * 255.0)
+            if cur is None:
+                p = np.clip(base_x, 0, None)
+                p[3:6] = np.clip(p[3:6], 0, 1)
+                S.append(degrade(rr.rgb, rr.range, rr.depth, p, fog=fog) * 255.0)
+            else:
+                S.append(cur.simulate(k, cur.x0(base_x)[None])[0].astype(np.float64) * 255.0)
             hit = np.isfinite(rr.range)
             Y, Ys = luminance(f.image.astype(np.float32)), luminance(S[-1])
             excl = particle_exclusion(Y, Ys, hit)
@@ -76,7 +83,8 @@ def noise_refit(fit_f, held_f, base_x, sig, fog, seed, ref_held_pf, base_theta_t
 
     rfit, Sfit, real_fit, hfit = prep(fit_f)
     rheld, Sheld, real_held, hheld = prep(held_f)
-    model = EffectModel(rfit, ["sensor_noise"], fog=fog, seed=seed)
+    names = tuple(effects) + ("sensor_noise",)
+    model = EffectModel(rfit, names, values=values, free=fixed, fog=fog, seed=seed)
     lo, hi = model.bounds()
     h = (sig.hint if sig is not None else {}) or {}
     iw = np.nanmedian([r["i_water"] for r in real_fit if r]) if any(real_fit) else 60.0
@@ -130,7 +138,7 @@ def noise_refit(fit_f, held_f, base_x, sig, fog, seed, ref_held_pf, base_theta_t
             tc.append(float(ref.score(cand)[0]))
         return eb, ec, np.array(tb), np.array(tc)
 
-    hmodel = EffectModel(rheld, ["sensor_noise"], fog=fog, seed=seed + 50)
+    hmodel = model.like(rheld, seed=seed + 50)
     e_base, e_cand, tb, tc = compare(held_f, Sheld, real_held, hheld, hmodel)
     _, _, tbf, tcf = compare(fit_f, Sfit, real_fit, hfit, model)
     e_base, e_cand = np.array(e_base), np.array(e_cand)
@@ -158,7 +166,8 @@ class SensorNoiseJudge(Judge):
 
     def refit(self, job, current, x_starts=None):
         r = noise_refit(job.fit_f, job.sel_f, current.base, self.signature(job), job.fog, job.seed, current.sel_pf,
-                        current.theta_fit, exclude=job.exclude or None)
+                        current.theta_fit, exclude=job.exclude or None, effects=current.effects,
+                        values=current.values)
         return Refit(effect=self.effect, effects=(self.effect,), x=r["x"], params=r["params"],
                      theta_fit=r["theta_train"], sel_pf=r["held_pf"], statistic=r["statistic"])
 
