@@ -306,15 +306,23 @@ def theta_refit(job: Job, current: Current, judge: Judge, starts: Optional[list]
                     popsize=job.popsize, patience=job.patience, interrupt=job.interrupt)
     # the nesting invariant, judged where models are compared (fit frames, high resolution)
     # (only where the effect has neutral values: a seafloor, once listed, is there)
-    t_fit = job.frame_theta(model, job.fit_f, np.stack([fit.x, x_id])).mean(axis=1)
+    # A fit at the low resolution also moves the base parameters to the low-resolution optimum, which can
+    # score below the current (high-resolution) optimum where models are compared: the fitted effect with
+    # the current base parameters is tried there too.
+    x_mix = fit.x.copy()
+    x_mix[:7] = x_id[:7]
+    t_all = job.frame_theta(model, job.fit_f, np.stack([fit.x, x_id, x_mix])).mean(axis=1)
+    j = 0 if t_all[0] >= t_all[2] else 2
+    t_fit = np.array([t_all[j], t_all[1]])
     neutral = job.judges[judge.effect].neutral(model.params_of(x_id)["effects"][judge.effect])
     kept_current = bool(neutral and not t_fit[0] >= t_fit[1])
-    x = x_id if kept_current else fit.x
+    x = x_id if kept_current else (fit.x if j == 0 else x_mix)
     sel_pf = job.frame_theta(model, job.sel_f, x, seed_offset=50)[0]
     return Refit(effect=judge.effect, effects=names, x=x, params=model.params_of(x),
                  theta_fit=float(t_fit[1] if kept_current else t_fit[0]),
                  sel_pf=sel_pf, model=model, started_at_current=kept_current,
-                 extra={"theta_fit_optimizer": float(t_fit[0]), "theta_fit_nested_start": float(t_fit[1]),
+                 extra={"theta_fit_optimizer": float(t_all[0]), "theta_fit_nested_start": float(t_all[1]),
+                        "theta_fit_effect_with_current_base": float(t_all[2]),
                         "resolution": res, "n_evals": int(fit.n_evals)})
 
 
