@@ -23,6 +23,8 @@ Base physics (always on, the "control" of this generator; counts as ``artificial
   ``L_bs = int_0^{R_c} b * p_HG(psi) * sum_i I_i(theta) exp(-c r_i) / r_i**2 * exp(-c t) dt``,
   ray-marched on log-spaced steps (0.03-12 m) every ``bs_step``-th pixel; the cumulative integral is
   interpolated to every pixel at that pixel's own surface range (sharp at silhouettes);
+- the camera's ordinary noise at low gain (20 e-/DN, 15 e- read noise, Poisson): photons are counted
+  whatever the camera;
 - a fixed exposure for the whole dive, set so that the mean of the panel (brightest channel) at the
   closest frame lands at 85-115 DN (deep-sea footage is dark: the panel at 4 m sits at a few to a few tens
   of DN, open water near 0 except the backscatter; white details of the closest frames may clip); linear
@@ -35,8 +37,9 @@ Effects that can be concealed on top (``effects={name: 'mild'|'strong'}``):
   linearly with range (applied per range layer of the source pixels);
 - vignetting: lens relative illumination ``cos^m`` of the in-air angle behind a flat port (Snell), the
   port's Fresnel transmission (water-glass-air, unpolarised) and, strong, a mechanical housing clip;
-- sensor_noise: Bayer RGGB mosaic of the raw signal, Poisson shot noise in electrons, Gaussian read noise,
-  (strong: high gain, row noise and a fixed dark pattern), bilinear demosaic;
+- sensor_noise: a high-gain camera instead (6 / 2.5 e-/DN): Bayer RGGB mosaic of the raw signal, Poisson
+  shot noise in electrons, Gaussian read noise (strong: also row noise and a fixed dark pattern), bilinear
+  demosaic;
 - camera_response: white balance gains and a Rec.709 (mild) or sRGB with black pedestal (strong) OETF,
   exposure set on the output;
 - marine_snow: particles (power-law sizes 0.4-6 / 0.4-10 mm, 0.4 / 2 per litre) fixed in the water and
@@ -463,11 +466,17 @@ def _tone(level: Optional[str]):
     return np.array([1.55, 1.0, 1.3]), srgb, 6.0
 
 
+def _base_noise(lin_dn, rng, gain_e: float = 20.0, read_e: float = 15.0):
+    """The camera's ordinary noise at low gain (no effect): Poisson electrons plus read noise; DN."""
+    e = rng.poisson(np.clip(lin_dn, 0, None) * gain_e).astype(float) + rng.normal(0, read_e, lin_dn.shape)
+    return np.clip(e / gain_e, 0, None)
+
+
 def _bayer_noise(lin_dn, rng, level: str, fpn: dict):
     """Linear DN image (H, W, 3) -> mosaic, electrons with shot + read noise, demosaic; DN (H, W, 3)."""
     import cv2
 
-    gain_e, read_e = {"mild": (8.0, 4.0), "strong": (3.0, 5.0)}[level]
+    gain_e, read_e = {"mild": (6.0, 5.0), "strong": (2.5, 5.0)}[level]
     H, W, _ = lin_dn.shape
     raw = np.empty((H, W))
     raw[0::2, 0::2] = lin_dn[0::2, 0::2, 0]     # R G / G B
@@ -566,6 +575,8 @@ def synth_physical(out, effects: dict, n_frames: int = 8, seed: int = 0, width: 
         x = img * K
         if "sensor_noise" in effects:
             x = _bayer_noise(x * 255.0, rng, effects["sensor_noise"], fpn) / 255.0
+        else:       # photons are counted whatever the camera: a low-gain sensor's shot and read noise
+            x = _base_noise(x * 255.0, rng) / 255.0
         dn = ped + (255.0 - ped) * oetf(np.clip(x * wb, 0, 1))
         img8 = np.clip(np.rint(dn), 0, 255).astype(np.uint8)
         if "compression" in effects:
