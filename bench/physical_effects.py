@@ -209,21 +209,23 @@ def lamp_visibility(P, hit, lamp: Lamp, T_cam_panel, shadow_ren: Renderer) -> np
     Pl = P[hit] @ Tl[:3, :3].T + Tl[:3, 3]
     z = Pl[:, 2]
     ok = z > 1e-3
-    u = np.where(ok, sc.fx * Pl[:, 0] / np.where(ok, z, 1) + sc.cx, -1e9)
-    v = np.where(ok, sc.fy * Pl[:, 1] / np.where(ok, z, 1) + sc.cy, -1e9)
-    vis = np.zeros(len(z))
+    zs = np.where(ok, z, 1.0)
+    ui = np.rint(sc.fx * Pl[:, 0] / zs + sc.cx).astype(np.int64) + 1      # +1: the padded map
+    vi = np.rint(sc.fy * Pl[:, 1] / zs + sc.cy).astype(np.int64) + 1
+    ok &= (ui >= 1) & (ui <= sc.width) & (vi >= 1) & (vi <= sc.height)
+    zpad = np.pad(zmap, 1, mode="edge").astype(np.float32)
+    Wp = sc.width + 2
+    flat = np.where(ok, vi * Wp + ui, Wp + 1)
+    zt = (z - 0.01) / 1.01                  # lit when z <= zmap * 1.01 + 0.01 (depth bias)
+    vis = np.zeros(len(z), np.float32)
     n = 0
-    for du in (-1, 0, 1):
-        for dv in (-1, 0, 1):
-            ui = np.rint(u).astype(np.int64) + du
-            vi = np.rint(v).astype(np.int64) + dv
-            inside = ok & (ui >= 0) & (ui < sc.width) & (vi >= 0) & (vi < sc.height)
-            zm = np.full(len(z), np.inf)
-            zm[inside] = zmap[vi[inside], ui[inside]]
-            vis += (z <= zm * 1.01 + 0.01)
+    for dv in (-1, 0, 1):
+        for du in (-1, 0, 1):
+            vis += zpad.ravel()[flat + dv * Wp + du] >= zt
             n += 1
+    vis = np.where(ok, vis / n, 1.0)        # outside the lamp's map: lit (the beam is weak there)
     out = np.ones(hit.shape)
-    out[hit] = vis / n
+    out[hit] = vis
     return out
 
 
