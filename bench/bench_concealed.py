@@ -63,11 +63,12 @@ def multi_effects(gen: str, i: int, pool) -> dict:
     r = np.random.default_rng(9000 + 97 * MULTI_GENS.index(gen) + i)
     n = int(r.integers(3, 5))
     if gen == "physical":
-        names = list(r.choice(list(pool), size=n - 1, replace=False))
+        names = list(r.choice(list(pool), size=min(n - 1, len(pool)), replace=False))
     else:
         lamps = "artificial_light" in pool and (r.random() < 0.75)
         rest = [e for e in pool if e != "artificial_light"]
-        names = (["artificial_light"] if lamps else []) + list(r.choice(rest, size=n - int(lamps), replace=False))
+        names = (["artificial_light"] if lamps else []) + list(r.choice(rest, size=min(n - int(lamps), len(rest)),
+                                                                         replace=False))
     return {str(e): ("strong" if r.random() < 0.6 else "mild") for e in names}
 
 
@@ -106,7 +107,7 @@ def make_trials(args) -> list:
         for e in pe:
             for s in sev:
                 trials.append({"gen": "physical", "effects": {e: s}, "seed": 400 + seed})
-    pools = {"own": effects, "foreign": fe, "physical": pe}
+    pools = {"own": EFFECTS, "foreign": FOREIGN, "physical": PHYSICAL}     # multi: whole lists, not the subsets
     for gen in args.multi_gens.split(","):
         for i in range(args.multi):
             seed = {"own": 200, "foreign": 300, "physical": 500}[gen] + i
