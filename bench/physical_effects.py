@@ -121,7 +121,7 @@ class Dive:
 
 def make_dive(seed: int, n_frames: int, width: int) -> Dive:
     rng = np.random.default_rng(7700 + seed)
-    cam = CameraModel.from_fov(width, width * 3 // 4, float(rng.uniform(60, 80)))
+    cam = CameraModel.from_fov(width, width * 3 // 4, float(rng.uniform(58, 72)))    # in water, behind a flat port
     # pure sea water absorption at the three wavelengths (roughly Pope & Fry) plus CDOM / detritus
     a_w = np.array([0.27, 0.055, 0.015])
     a = a_w + rng.uniform(0.0, 0.03) * np.exp(-0.014 * (LAMBDA_NM - 440.0)) + rng.uniform(0.01, 0.08) * np.array([1, .5, .4])
@@ -344,7 +344,7 @@ def forward_scatter_add(L_s, R, hit, dive: Dive, level: str, fx: float) -> np.nd
 
 def vignetting_map(cam: CameraModel, dirs, level: str) -> np.ndarray:
     n_w, n_g = 1.34, 1.5
-    m = {"mild": 0.7, "strong": 1.4}[level]
+    m = {"mild": 0.6, "strong": 1.2}[level]
     sin_w = np.sqrt(1 - np.clip(dirs[..., 2], 0, 1) ** 2)
     th_w = np.arcsin(sin_w)
     th_a = np.arcsin(np.clip(n_w * sin_w, 0, 0.999))
