@@ -18,16 +18,16 @@ def test_physical_bag_is_readable_and_blind(tmp_path, effects):
     from uw_sil.bags import open_bag, read_samples
 
     bag = tmp_path / "trial.mcap"
-    truth = synth_physical(bag, effects, n_frames=4, seed=3, width=160, bs_step=16)
+    truth = synth_physical(bag, effects, n_frames=3, seed=3, width=160, bs_step=16)
     assert truth["effects"] == {"artificial_light": "always", **effects}
     info = open_bag(tmp_path / "trial")
-    assert info.topics["/camera/image_raw"].count == 4
+    assert info.topics["/camera/image_raw"].count == 3
     assert not any("truth" in t for t in info.topics)
     files = sorted(p.name for p in (tmp_path / "trial").rglob("*") if p.is_file())
     assert files == ["metadata.yaml", "trial.mcap"]          # nothing next to the bag
     assert not any(tmp_path.glob("*truth*"))
     samples = list(read_samples(tmp_path / "trial"))
-    assert len(samples) == 4
+    assert len(samples) == 3
     ranges = [float(np.linalg.norm(s.pose[:3, 3])) for s in samples]
     assert np.allclose(ranges, truth["ranges"], atol=1e-6) and ranges[0] > ranges[-1]
     for s in samples:
