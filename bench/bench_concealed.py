@@ -235,6 +235,9 @@ def summarize_physical(rows):
     for r in sorted(rows, key=lambda r: (r["seed"], sorted(r["effects"].items()))):
         eff = "+".join(f"{k}={v}" for k, v in sorted(r["effects"].items())) or "lamps only (control)"
         extra = [p for p in r["pred"] if p not in r["truth"]]
+        if str(r["top1"]).startswith("error"):
+            print(f"  seed {r['seed']} {eff:34s} DIAGNOSIS FAILED: {r['top1']}: {r.get('error', '')[:100]}")
+            continue
         print(f"  seed {r['seed']} {eff:34s} verdict {r['pred']}  lamps {'found' if 'artificial_light' in r['pred'] else 'MISSED'}"
               + (f", effect {'found' if r['effects'] and list(r['effects'])[0] in r['pred'] else 'MISSED'}" if r["effects"] else "")
               + (f", also named {extra}" if extra else "")
@@ -245,9 +248,11 @@ def summarize_physical(rows):
     eff_found = float(np.mean([list(r["effects"])[0] in r["pred"] for r in eff])) if eff else float("nan")
     top1 = float(np.mean([r["top1"] in r["truth"] for r in rows])) if rows else float("nan")
     spurious = sum(len([p for p in r["pred"] if p not in r["truth"]]) for r in rows)
+    failed = sum(str(r["top1"]).startswith("error") for r in rows)
     print(f"physical: lamps found in {100 * lamps:.0f}% of {len(rows)} trials ({sum('artificial_light' in r['pred'] for r in ctrl)}"
           f"/{len(ctrl)} lamps-only controls); concealed effect named in {100 * eff_found:.0f}% of {len(eff)}; "
-          f"top-1 in the truth {100 * top1:.0f}%; {spurious} names outside the truth")
+          f"top-1 in the truth {100 * top1:.0f}%; {spurious} names outside the truth; {failed} diagnoses failed "
+          f"(counted as nothing named)")
     return lamps, eff_found
 
 
@@ -284,6 +289,8 @@ def summarize_multi(rows, label: str):
         d = (th - c_th) if (th is not None and c_th is not None) else None
         if d is not None:
             close.append(d)
+        if str(r["top1"]).startswith("error") or (c and str(c["top1"]).startswith("error")):
+            print(f"  {r['key']}: DIAGNOSIS FAILED ({r['top1']}; control {c['top1'] if c else 'n/a'})")
         print(f"  {r['key']}: verdict {r['pred']}; held-out θ final {th if th is None else round(th, 4)}, "
               f"control final {c_th if c_th is None else round(c_th, 4)} ({'n/a' if d is None else f'{d:+.4f}'}); "
               f"control verdict {c['pred'] if c else 'n/a'}")
