@@ -6,13 +6,29 @@ two-effect combinations, several seeds, written as bags by ``synthesize_trial`` 
 noise structure, values, trajectories: yaw/pitch up to 15/10 deg, end range 1.2-1.8 m). Each bag is
 diagnosed blind (only the bag; the truth stays in this script). Prints a confusion matrix (truth x top-1
 verdict), top-1 accuracy over single-effect trials, false alarms on controls, held-out θ gains of correct
-detections, time per trial; the foreign variant separately. Results are appended to ``results.jsonl`` in
-``--out-dir`` (a rerun skips trials already there). Last line::
+detections, time per trial; the foreign variant separately.
 
-    concealed: top1=XX% false_alarm=YY% trials=N
+A third, physically based generator (``physical_effects.py``, ``--physical-seeds N``): deep-sea recordings
+lit only by the vehicle's lamps (always on: they count as ``artificial_light`` in the truth), rendered from
+radiative transfer; its trials are a lamps-only control and each of its effects mild and strong on top of
+the lamps. Reported: lamps found (``artificial_light`` in the verdict), the concealed effect found, other
+names (false alarms), held-out θ.
+
+Multi-effect trials (``--multi N``: N per generator of ``--multi-gens``): 3-4 effects concealed at once
+(lamps in about three quarters of the own / foreign ones, always in the physical ones), each with an
+effect-free control of the same generator and seed. Reported per generator and overall: per-effect recall
+and precision, exact-set matches, and the held-out θ of the final model against the one the control's
+final model reaches (the goal: within 0.01).
+
+Results are appended to ``results.jsonl`` in ``--out-dir`` (a rerun skips trials already there). Last
+line (top1 / false_alarm: own generator single effects / controls, as before; multi_*: micro-averaged over
+all multi-effect trials; trials: all trials of the run)::
+
+    concealed: top1=XX% false_alarm=YY% multi_recall=RR% multi_precision=PP% trials=N
 
     .venv/bin/python bench/bench_concealed.py [--seeds 2] [--width 640] [--frames 8] [--foreign-seeds 1]
-        [--effects a,b,...] [--severities mild,strong] [--controls 3] [--no-pairs] [--out-dir DIR]
+        [--physical-seeds 1] [--multi 2] [--effects a,b,...] [--severities mild,strong] [--controls 3]
+        [--no-pairs] [--out-dir DIR]
 
 Run it in the background (``nohup ... &``): a trial takes 1-3 minutes on a 2-core machine.
 """
@@ -36,6 +52,24 @@ EFFECTS = ("artificial_light", "forward_scatter", "backscatter_coefficient", "vi
 PAIRS = (("artificial_light", "vignetting"), ("forward_scatter", "marine_snow"), ("camera_response", "pose_error"))
 FOREIGN = ("artificial_light", "forward_scatter", "vignetting", "sensor_noise", "marine_snow", "camera_response",
            "backscatter_coefficient", "unmodeled_geometry", "pose_error")
+# effects of the physical generator that the registry can name (its "compression" is not offered by default)
+PHYSICAL = ("forward_scatter", "vignetting", "sensor_noise", "camera_response", "marine_snow", "unmodeled_geometry")
+MULTI_GENS = ("own", "foreign", "physical")
+
+
+def multi_effects(gen: str, i: int, pool) -> dict:
+    """The i-th multi-effect set of a generator: 3-4 effects (lamps in ~3/4 of them; physical: lamps always,
+    plus 2-3 of its own), mild or strong (strong more often). Deterministic."""
+    r = np.random.default_rng(9000 + 97 * MULTI_GENS.index(gen) + i)
+    n = int(r.integers(3, 5))
+    if gen == "physical":
+        names = list(r.choice(list(pool), size=min(n - 1, len(pool)), replace=False))
+    else:
+        lamps = "artificial_light" in pool and (r.random() < 0.75)
+        rest = [e for e in pool if e != "artificial_light"]
+        names = (["artificial_light"] if lamps else []) + list(r.choice(rest, size=min(n - int(lamps), len(rest)),
+                                                                         replace=False))
+    return {str(e): ("strong" if r.random() < 0.6 else "mild") for e in names}
 
 
 def own_params(seed: int):
@@ -67,6 +101,18 @@ def make_trials(args) -> list:
         for e in fe:
             for s in sev:
                 trials.append({"gen": "foreign", "effects": {e: s}, "seed": 100 + seed})
+    pe = args.physical_effects.split(",") if args.physical_effects else PHYSICAL
+    for seed in range(args.physical_seeds):
+        trials.append({"gen": "physical", "effects": {}, "seed": 400 + seed})
+        for e in pe:
+            for s in sev:
+                trials.append({"gen": "physical", "effects": {e: s}, "seed": 400 + seed})
+    pools = {"own": EFFECTS, "foreign": FOREIGN, "physical": PHYSICAL}     # multi: whole lists, not the subsets
+    for gen in args.multi_gens.split(","):
+        for i in range(args.multi):
+            seed = {"own": 200, "foreign": 300, "physical": 500}[gen] + i
+            trials.append({"gen": gen, "effects": multi_effects(gen, i, pools[gen]), "seed": seed, "multi": True})
+            trials.append({"gen": gen, "effects": {}, "seed": seed, "multi": True})     # its effect-free control
     dedup = {}
     for t in trials:
         dedup[key(t)] = t
@@ -76,6 +122,27 @@ def make_trials(args) -> list:
 def key(t) -> str:
     eff = "+".join(f"{k}={v}" for k, v in sorted(t["effects"].items())) or "control"
     return f"{t['gen']}:{eff}:seed{t['seed']}"
+
+
+def truth_of(t) -> list:
+    """Concealed effects as registry names: the physical generator's lamps are always on."""
+    eff = set(t["effects"])
+    if t["gen"] == "physical":
+        eff.add("artificial_light")
+    return sorted(eff)
+
+
+def diagnose_kwargs(args) -> dict:
+    """``max_candidates`` only while the diagnosis still accepts it."""
+    import inspect
+
+    from uw_sil.fit import diagnose as dg
+
+    params = inspect.signature(dg.diagnose_bag).parameters
+    accepts = "max_candidates" in params
+    if not accepts and any(p.kind == p.VAR_KEYWORD for p in params.values()) and hasattr(dg, "diagnose_frames"):
+        accepts = "max_candidates" in inspect.signature(dg.diagnose_frames).parameters
+    return {"max_candidates": args.max_candidates} if accepts else {}
 
 
 def run_trial(t, args) -> dict:
@@ -96,24 +163,28 @@ def run_trial(t, args) -> dict:
             tp = truth_path(bag)
             if tp.exists():
                 tp.unlink()
-        else:
+        elif t["gen"] == "foreign":
             from foreign_effects import synth_foreign
 
             synth_foreign(bag, dict(t["effects"]), n_frames=args.frames, seed=t["seed"], width=args.width)
+        else:
+            from physical_effects import synth_physical
+
+            synth_physical(bag, dict(t["effects"]), n_frames=args.frames, seed=t["seed"], width=args.width)
         t_gen = time.perf_counter() - t0
         t0 = time.perf_counter()
-        diag = diagnose_bag(bag, k=args.frames, max_candidates=args.max_candidates, seed=0)
+        diag = diagnose_bag(bag, k=args.frames, seed=0, **diagnose_kwargs(args))
         t_diag = time.perf_counter() - t0
     doc = diag.to_json()
-    truth = sorted(t["effects"])
+    truth = truth_of(t)
     pred = [v["effect"] for v in doc["verdict"]]
     top1 = pred[0] if pred else "none"
     return {"key": key(t), **t, "truth": truth, "pred": pred, "top1": top1,
             "base_heldout": doc["base"]["theta_heldout"], "final_heldout": doc["final"]["theta_heldout"],
             "gain": doc["final"]["theta_heldout"] - doc["base"]["theta_heldout"],
-            "candidates": [(c["effect"], c["delta_heldout"], c.get("margin")) for c in doc["candidates"]],
-            "screen": {e: s.get("screen_score") for e, s in doc["signatures"].items()},
-            "time_s": t_diag, "gen_s": t_gen, "timing": doc["timing"]}
+            "candidates": [(c.get("effect"), c.get("delta_heldout"), c.get("margin")) for c in doc.get("candidates", [])],
+            "screen": {e: s.get("screen_score") for e, s in doc.get("signatures", {}).items()},
+            "time_s": t_diag, "gen_s": t_gen, "timing": doc.get("timing")}
 
 
 def summarize(rows, label: str):
@@ -158,6 +229,78 @@ def summarize(rows, label: str):
     return top1, fa, len(rows)
 
 
+def summarize_physical(rows):
+    """Physical generator, single effects: lamps always on, one effect (or none) on top."""
+    print("\n=== physical generator (lamps always on): verdict per trial ===")
+    for r in sorted(rows, key=lambda r: (r["seed"], sorted(r["effects"].items()))):
+        eff = "+".join(f"{k}={v}" for k, v in sorted(r["effects"].items())) or "lamps only (control)"
+        extra = [p for p in r["pred"] if p not in r["truth"]]
+        if str(r["top1"]).startswith("error"):
+            print(f"  seed {r['seed']} {eff:34s} DIAGNOSIS FAILED: {r['top1']}: {r.get('error', '')[:100]}")
+            continue
+        print(f"  seed {r['seed']} {eff:34s} verdict {r['pred']}  lamps {'found' if 'artificial_light' in r['pred'] else 'MISSED'}"
+              + (f", effect {'found' if r['effects'] and list(r['effects'])[0] in r['pred'] else 'MISSED'}" if r["effects"] else "")
+              + (f", also named {extra}" if extra else "")
+              + f", held-out θ {r.get('base_heldout', float('nan')):.3f} -> {r.get('final_heldout', float('nan')):.3f}")
+    ctrl = [r for r in rows if not r["effects"]]
+    eff = [r for r in rows if r["effects"]]
+    lamps = float(np.mean(["artificial_light" in r["pred"] for r in rows])) if rows else float("nan")
+    eff_found = float(np.mean([list(r["effects"])[0] in r["pred"] for r in eff])) if eff else float("nan")
+    top1 = float(np.mean([r["top1"] in r["truth"] for r in rows])) if rows else float("nan")
+    spurious = sum(len([p for p in r["pred"] if p not in r["truth"]]) for r in rows)
+    failed = sum(str(r["top1"]).startswith("error") for r in rows)
+    print(f"physical: lamps found in {100 * lamps:.0f}% of {len(rows)} trials ({sum('artificial_light' in r['pred'] for r in ctrl)}"
+          f"/{len(ctrl)} lamps-only controls); concealed effect named in {100 * eff_found:.0f}% of {len(eff)}; "
+          f"top-1 in the truth {100 * top1:.0f}%; {spurious} names outside the truth; {failed} diagnoses failed "
+          f"(counted as nothing named)")
+    return lamps, eff_found
+
+
+def summarize_multi(rows, label: str):
+    """Multi-effect trials against their effect-free controls (same generator, same seed)."""
+    multi = [r for r in rows if r.get("multi") and r["effects"]]
+    ctrl = {(r["gen"], r["seed"]): r for r in rows if r.get("multi") and not r["effects"]}
+    if not multi:
+        return float("nan"), float("nan"), 0
+    print(f"\n=== {label}: multi-effect trials ===")
+    names = sorted({e for r in multi for e in r["truth"]} | {e for r in multi for e in r["pred"]})
+    tp = {e: 0 for e in names}
+    fn = dict(tp)
+    fp = dict(tp)
+    for r in multi:
+        for e in names:
+            tp[e] += (e in r["truth"]) and (e in r["pred"])
+            fn[e] += (e in r["truth"]) and (e not in r["pred"])
+            fp[e] += (e not in r["truth"]) and (e in r["pred"])
+    print(f"  {'effect':26s} {'recall':>12s} {'precision':>12s}")
+    for e in names:
+        rec = f"{tp[e]}/{tp[e] + fn[e]}" if tp[e] + fn[e] else "-"
+        pre = f"{tp[e]}/{tp[e] + fp[e]}" if tp[e] + fp[e] else "-"
+        print(f"  {e:26s} {rec:>12s} {pre:>12s}")
+    TP, FN, FP = sum(tp.values()), sum(fn.values()), sum(fp.values())
+    recall = TP / (TP + FN) if TP + FN else float("nan")
+    precision = TP / (TP + FP) if TP + FP else float("nan")
+    exact = sum(set(r["truth"]) == set(r["pred"]) for r in multi)
+    close = []
+    for r in multi:
+        c = ctrl.get((r["gen"], r["seed"]))
+        c_th = c.get("final_heldout") if c else None
+        th = r.get("final_heldout")
+        d = (th - c_th) if (th is not None and c_th is not None) else None
+        if d is not None:
+            close.append(d)
+        if str(r["top1"]).startswith("error") or (c and str(c["top1"]).startswith("error")):
+            print(f"  {r['key']}: DIAGNOSIS FAILED ({r['top1']}; control {c['top1'] if c else 'n/a'})")
+        print(f"  {r['key']}: verdict {r['pred']}; held-out θ final {th if th is None else round(th, 4)}, "
+              f"control final {c_th if c_th is None else round(c_th, 4)} ({'n/a' if d is None else f'{d:+.4f}'}); "
+              f"control verdict {c['pred'] if c else 'n/a'}")
+    within = sum(d >= -0.01 for d in close)
+    print(f"{label} multi: recall {100 * recall:.0f}% ({TP}/{TP + FN}), precision {100 * precision:.0f}% ({TP}/{TP + FP}), "
+          f"exact sets {exact}/{len(multi)}; held-out θ of the final model within 0.01 of its control's (or above) "
+          f"in {within}/{len(close)}" + (f", mean difference {np.mean(close):+.4f}" if close else ""))
+    return recall, precision, len(multi), TP, FN, FP
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seeds", type=int, default=2)
@@ -166,6 +309,10 @@ def main():
     ap.add_argument("--effects", default=None, help="comma-separated subset of the own effects")
     ap.add_argument("--foreign-effects", default=None)
     ap.add_argument("--severities", default="mild,strong")
+    ap.add_argument("--physical-seeds", type=int, default=1, help="dives of the physically based generator")
+    ap.add_argument("--physical-effects", default=None, help="comma-separated subset of its effects")
+    ap.add_argument("--multi", type=int, default=2, help="multi-effect trials per generator (each with a control)")
+    ap.add_argument("--multi-gens", default=",".join(MULTI_GENS))
     ap.add_argument("--no-pairs", action="store_true")
     ap.add_argument("--width", type=int, default=640)
     ap.add_argument("--frames", type=int, default=8)
@@ -193,7 +340,7 @@ def main():
             try:
                 r = run_trial(t, args)
             except Exception as e:      # a failed trial is reported, the bench goes on
-                r = {"key": k, **t, "truth": sorted(t["effects"]), "pred": [], "top1": f"error:{type(e).__name__}",
+                r = {"key": k, **t, "truth": truth_of(t), "pred": [], "top1": f"error:{type(e).__name__}",
                      "gain": 0.0, "candidates": [], "time_s": 0.0, "error": str(e)}
             done[k] = r
             with open(res_path, "a") as fh:
@@ -202,13 +349,26 @@ def main():
                   f"{r['time_s']:.0f} s", flush=True)
     keys = {key(t) for t in trials}
     rows = [r for k, r in done.items() if k in keys]
-    own = [r for r in rows if r["gen"] == "own"]
-    foreign = [r for r in rows if r["gen"] == "foreign"]
+    classic = [r for r in rows if not r.get("multi")]
+    own = [r for r in classic if r["gen"] == "own"]
+    foreign = [r for r in classic if r["gen"] == "foreign"]
+    physical = [r for r in classic if r["gen"] == "physical"]
     t1, fa, n = summarize(own, "own generator") if own else (float("nan"), float("nan"), 0)
     if foreign:
         ft1, ffa, fn = summarize(foreign, "foreign variant")
         print(f"foreign: top1={100 * ft1:.0f}% false_alarm={100 * ffa:.0f}% trials={fn}")
-    print(f"concealed: top1={100 * t1:.0f}% false_alarm={100 * fa:.0f}% trials={n}")
+    if physical:
+        lamps, eff_found = summarize_physical(physical)
+        print(f"physical: lamps={100 * lamps:.0f}% effect={100 * eff_found:.0f}% trials={len(physical)}")
+    TP = FN = FP = 0
+    for gen in MULTI_GENS:
+        res = summarize_multi([r for r in rows if r["gen"] == gen], f"{gen} generator")
+        if res[2]:
+            TP, FN, FP = TP + res[3], FN + res[4], FP + res[5]
+    m_rec = 100 * TP / (TP + FN) if TP + FN else float("nan")
+    m_pre = 100 * TP / (TP + FP) if TP + FP else float("nan")
+    print(f"concealed: top1={100 * t1:.0f}% false_alarm={100 * fa:.0f}% multi_recall={m_rec:.0f}% "
+          f"multi_precision={m_pre:.0f}% trials={len(rows)}")
 
 
 if __name__ == "__main__":
