@@ -286,3 +286,17 @@ def test_blockiness_reads_the_quality_of_a_jpeg_round_trip():
     assert abs(b[0] - 1.0) < 0.05, b
     assert all(b2 > b1 for b1, b2 in zip(b, b[1:])), b
     assert b[-1] > 1.3, b
+
+
+def test_noise_level_is_never_below_quantization():
+    """Near-black quantized water reads as zero noise (every pixel 0 DN); a zero noise level made the
+    signature fits' weights infinite (LinAlgError in lstsq on a physically lit, noise-free dive)."""
+    from types import SimpleNamespace
+
+    from uw_sil.fit.diagfit import QUANTIZATION_SIGMA, noise_sigmas
+
+    img = np.zeros((60, 80, 3), np.float32)
+    water = np.ones((60, 80), bool)
+    s1, s2 = noise_sigmas([SimpleNamespace(image=img, water=water, factor=1),
+                           SimpleNamespace(image=img, water=water, factor=4)])
+    assert np.allclose(s1, QUANTIZATION_SIGMA) and np.allclose(s2, QUANTIZATION_SIGMA / 4)

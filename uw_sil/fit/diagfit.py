@@ -75,8 +75,14 @@ def _clean_base(p) -> np.ndarray:
     return p
 
 
+#: Standard deviation of 8-bit quantization, 1/sqrt(12) grey levels: no recording is quieter than that.
+QUANTIZATION_SIGMA = 12 ** -0.5
+
+
 def noise_sigmas(rframes: Sequence[ReducedFrame]) -> list:
-    """Camera noise per frame and channel (grey levels at the reduced size), from the real water."""
+    """Camera noise per frame and channel (grey levels at the reduced size), from the real water; at least the
+    8-bit quantization's (averaged over the reduction's blocks). Near-black, quantized or demosaiced water
+    can read as 0 noise, and a zero noise level turned into infinite weights in the signature fits."""
     from ..sim.noise import estimate_noise_sigma
 
     out = []
@@ -85,7 +91,7 @@ def noise_sigmas(rframes: Sequence[ReducedFrame]) -> list:
             s = estimate_noise_sigma(rf.image, rf.water)
         except ValueError:
             s = estimate_noise_sigma(rf.image)
-        out.append(np.asarray(s, float))
+        out.append(np.maximum(np.asarray(s, float), QUANTIZATION_SIGMA / max(1, rf.factor)))
     return out
 
 
