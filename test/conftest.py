@@ -24,6 +24,26 @@ def import_or_skip(name: str, reason: str):
         raise ImportError(f"CI=true but {name} cannot be imported ({reason}): {exc}") from exc
 
 
+@pytest.fixture(autouse=True)
+def _ros_domains():
+    """The ROS domain ids a test reserved (rosproc.domain_id) are given back when it ends."""
+    yield
+    from rosproc import release_domains
+
+    release_domains()
+
+
+def pytest_sessionfinish(session):
+    """Fast DDS shared-memory segments of node processes a test had to SIGKILL (they outlive their owner and
+    fill /dev/shm, which is RAM) are removed; segments of live processes (other runs) are left alone."""
+    try:
+        from rosproc import clean_shm
+
+        clean_shm()
+    except Exception:       # uw_sil not importable: nothing of ours ran
+        pass
+
+
 @pytest.fixture
 def ros(monkeypatch):
     """A fresh rclpy Context on its own ROS domain with loopback discovery; shut down afterwards."""
