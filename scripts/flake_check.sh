@@ -91,7 +91,8 @@ for i in $(seq "$n"); do
   rc=$?
   set -e
   secs=$(( $(date +%s) - t0 ))
-  summary="$(grep -E '^=+ .*(passed|failed|error).* in [0-9.]+s' "$log" | tail -1 | sed -E 's/^=+ //; s/ =+$//')"
+  summary="$( (grep -E '(passed|failed|error|skipped|deselected).* in [0-9.]+s' "$log" || true) | tail -1 \
+             | sed -E 's/^=+ //; s/ =+$//')"
   if [ "$rc" = 0 ]; then
     passed=$((passed + 1))
     echo "[flake] run $i/$n: PASS in ${secs} s (${summary:-no summary})"
