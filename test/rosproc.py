@@ -225,6 +225,8 @@ class Proc:
                 self.popen.wait(timeout=10)
                 clean_shm()
         self._reader.join(timeout=5)
+        if not self._reader.is_alive():
+            self.popen.stdout.close()
 
 
 def assert_clean_output(text: str, what: str = ""):
