@@ -4,7 +4,8 @@
 #   bash scripts/flake_check.sh N [--load] [--venv PATH] [-- PYTEST_ARGS...]
 #
 # Clones the committed HEAD of this checkout (not its uncommitted changes) into a new temporary directory,
-# sets the clone up once (scripts/setup.sh: its own .venv) and runs `bash scripts/test.sh` there N times.
+# sets the clone up once (scripts/setup.sh: its own .venv) and runs `bash scripts/test.sh` there N times
+# (with `-- ARGS` or `--venv`: the command test.sh runs after its set-up, the same environment).
 # Prints each run's result with the names of the tests that failed, then `flake: passed=K/N`; exit status
 # 0 when all N passed. Each run's output is kept (the directory is printed); the clone is removed when all
 # runs passed.
@@ -16,14 +17,15 @@
 #                  instead of setting one up in the clone (a few minutes). The venv is not modified:
 #                  scripts/setup.sh is skipped and the tests run as scripts/test.sh runs them, with the
 #                  clone first on PYTHONPATH (an editable install of another checkout is shadowed).
-#   -- ARGS        passed to pytest, e.g. `-- test/test_node_faults.py -k sigkill` to repeat a subset.
+#   -- ARGS        pytest's arguments instead of the whole test/ directory, e.g. `-- test/test_node_faults.py
+#                  -k sigkill` to repeat a subset, `-- -m "not slow"` for the quick tests.
 #
 # The real-ros2-tools tests (test/test_ros2_tools.py) find ../shared/ros2-cli beside the repository; the
-# clone has none beside it, so $UW_SIL_ROS2_CLI is set to this checkout's when it has one (as here).
+# clone has none beside it, so $UW_SIL_ROS2_CLI is set to this checkout's when it has one.
 set -euo pipefail
 here="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 
-usage() { sed -n '2,12p' "$0" | sed 's/^# \{0,1\}//' >&2; exit 2; }
+usage() { awk 'NR > 1 && !/^#/ {exit} NR > 1 {sub(/^# ?/, ""); print}' "$0" >&2; exit 2; }
 [ $# -ge 1 ] || usage
 n="$1"; shift
 [[ "$n" =~ ^[1-9][0-9]*$ ]] || usage
@@ -80,13 +82,14 @@ for i in $(seq "$n"); do
   log="$work/run$i.log"
   t0=$(date +%s)
   set +e
-  if [ -z "$venv" ]; then
-    (cd "$clone" && bash scripts/test.sh "${pytest_args[@]}") > "$log" 2>&1
+  if [ -z "$venv" ] && [ ${#pytest_args[@]} = 0 ]; then
+    (cd "$clone" && bash scripts/test.sh) > "$log" 2>&1
   else
-    # what scripts/test.sh does after its set-up step, with the given venv
+    # what scripts/test.sh runs after its set-up step, with the selection given (test.sh itself always
+    # passes `test`, so a file given after it would not narrow the run); without paths pytest takes test/
     (cd "$clone" && export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST PYOPENGL_PLATFORM="${PYOPENGL_PLATFORM:-osmesa}" \
-       PYTHONPATH="$clone${PYTHONPATH:+:$PYTHONPATH}" && exec "$venv/bin/python" -m pytest test -q "${pytest_args[@]}") \
-       > "$log" 2>&1
+       PYTHONPATH="$clone${PYTHONPATH:+:$PYTHONPATH}" && exec "${venv:-$clone/.venv}/bin/python" -m pytest -q \
+       "${pytest_args[@]}") > "$log" 2>&1
   fi
   rc=$?
   set -e
