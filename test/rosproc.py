@@ -43,12 +43,18 @@ def domain_id() -> int:
     at once (two checkouts, ``scripts/flake_check.sh`` beside a developer's run) never share a domain, so
     one run's nodes cannot answer another's. A pid-based start spreads concurrent runs over the range."""
     _DOMAIN_LOCKS.mkdir(exist_ok=True)
+    st = _DOMAIN_LOCKS.stat()
+    if st.st_uid == os.getuid() and st.st_mode & 0o1777 != 0o1777:
+        _DOMAIN_LOCKS.chmod(0o1777)       # shared by the machine's users (sticky, as /tmp), like the domains
     start = (os.getpid() * 11 + next(_ids) * 3) % N_DOMAINS
     for k in range(N_DOMAINS):
         d = 1 + (start + k) % N_DOMAINS
         if d in _held:
             continue
-        f = open(_DOMAIN_LOCKS / f"{d}.lock", "a")
+        try:                              # read-only is enough for flock, also on another user's file
+            f = os.fdopen(os.open(_DOMAIN_LOCKS / f"{d}.lock", os.O_RDONLY | os.O_CREAT, 0o644), "rb")
+        except OSError:
+            continue
         try:
             fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError:
