@@ -162,7 +162,8 @@ class Proc:
     def tail(self, n: int = TAIL_LINES) -> str:
         """The last ``n`` output lines of each node in this process's output, headed by its state: the output
         of a launcher (``uw-sil launch``, ``ros2 launch``) is split by its ``[node]`` line prefixes, so the
-        tail of one chatty node does not hide another's. All of the output once the process has ended."""
+        tail of one chatty node does not hide another's. Once the process has ended, read after its reader
+        has taken all of its output (a message built earlier showed only the lines read so far)."""
         ended = self.popen.poll() is not None
         if ended:
             self._reader.join(timeout=5)          # everything it wrote, not what the reader had got so far
