@@ -71,6 +71,8 @@ FAKE_PYTHON = r"""#!/bin/bash
 # Stands in for `python -m uw_sil.nodes.entry NAME --ros-args ...`: behaves according to NAME. A long-running
 # node creates the file $READY once its signal traps are set; quick and fail wait for it (when READY is
 # set), so the launcher never signals a node that has not yet installed its traps, however busy the machine.
+# fail prints a line after its error line a moment later, so the launcher reads them in separate chunks
+# (the reason was lost then: 1 in ~10 runs under load printed "fail failed: stopping server").
 name="$3"
 echo "profile=$FASTDDS_DEFAULT_PROFILES_FILE"
 echo -n "partial line without newline"; echo " completed"
@@ -79,7 +81,7 @@ ready() { if [ -n "$READY" ]; then touch "$READY"; fi; }
 case "$name" in
   quick) wait_ready; sleep 0.2; echo "finished"; exit 0 ;;
   fail) wait_ready; sleep 0.2; echo "something broke" >&2; echo "[ERROR] [1795368386.5] [fail]: bag /x does not exist" >&2
-        echo "later output"; exit 3 ;;
+        sleep 0.3; echo "later output"; exit 3 ;;
   stubborn) trap '' INT TERM; ready; echo "ignoring signals"; while :; do sleep 0.05; done ;;
   *) trap 'echo "got SIGINT"; exit 0' INT; ready; echo "trapping SIGINT"; while :; do sleep 0.05; done ;;
 esac
