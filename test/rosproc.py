@@ -1,40 +1,93 @@
 """Helpers for tests that run ROS 2 nodes: a domain id per test, the environment of a node process, a
-process in its own process group with its output collected, waiting on output lines, signalling the group;
-for nodes in the test's own process, spinning an executor until a condition holds (the ``ros`` fixture,
-a fresh rclpy Context on its own domain, is in conftest.py)."""
+process in its own process group with its output collected, waiting on output lines, signalling the group,
+the tail of each node's log for failure messages; for nodes in the test's own process, spinning an
+executor until a condition holds (the ``ros`` fixture, a fresh rclpy Context on its own domain, is in
+conftest.py).
+
+Tests wait for events (a matched publisher or subscription, a service, a latched status, an output line,
+a process ending), each with a generous deadline whose failure names what did not come and shows the
+nodes' logs; never for a fixed time.
+"""
 from __future__ import annotations
 
+import fcntl
 import itertools
 import os
 import re
 import signal
 import subprocess
+import tempfile
 import threading
 import time
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Optional
+from typing import Callable, Optional
 
 _ids = itertools.count()
 
+#: Deadline for an event that normally takes well under a second (discovery, a service answer): discovery
+#: between processes took up to 3.4 s on a loaded 2-core machine; a deadline only ends a test that failed.
+EVENT_TIMEOUT = 30.0
+
+#: Domain ids (1..232; Fast DDS' port numbers end at 232) and the lock files that reserve them.
+N_DOMAINS = 232
+_DOMAIN_LOCKS = Path(tempfile.gettempdir()) / "uw_sil_test_ros_domains"
+_held: dict = {}
+
 
 def domain_id() -> int:
-    """A ROS_DOMAIN_ID (1..232) unlikely to be used by a concurrent test run or another test here
-    (offset from test_nodes' ids)."""
-    return 1 + (os.getpid() * 11 + 117 + next(_ids) * 3) % 232
+    """A ROS_DOMAIN_ID (1..232) that no other test on this machine uses while this test runs.
+
+    Each id is reserved by an ``flock`` on a file in the temporary directory, held by this process until
+    :func:`release_domains` (after each test, conftest.py) or its exit (a crash frees it too): two test runs
+    at once (two checkouts, ``scripts/flake_check.sh`` beside a developer's run) never share a domain, so
+    one run's nodes cannot answer another's. A pid-based start spreads concurrent runs over the range."""
+    _DOMAIN_LOCKS.mkdir(exist_ok=True)
+    st = _DOMAIN_LOCKS.stat()
+    if st.st_uid == os.getuid() and st.st_mode & 0o1777 != 0o1777:
+        _DOMAIN_LOCKS.chmod(0o1777)       # shared by the machine's users (sticky, as /tmp), like the domains
+    start = (os.getpid() * 11 + next(_ids) * 3) % N_DOMAINS
+    for k in range(N_DOMAINS):
+        d = 1 + (start + k) % N_DOMAINS
+        if d in _held:
+            continue
+        try:                              # read-only is enough for flock, also on another user's file
+            f = os.fdopen(os.open(_DOMAIN_LOCKS / f"{d}.lock", os.O_RDONLY | os.O_CREAT, 0o644), "rb")
+        except OSError:
+            continue
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            f.close()
+            continue
+        _held[d] = f
+        return d
+    raise RuntimeError(f"all {N_DOMAINS} ROS domain ids are in use by running tests ({_DOMAIN_LOCKS})")
 
 
-def spin_until(executor, cond, timeout: float = 20.0, what: str = "condition"):
-    """Spin ``executor`` until ``cond()`` is true; AssertionError naming ``what`` after ``timeout`` s."""
+def release_domains():
+    """Give back the domain ids this process reserved (their nodes must be gone)."""
+    for f in _held.values():
+        f.close()
+    _held.clear()
+
+
+def spin_until(executor, cond, timeout: float = EVENT_TIMEOUT, what: str = "condition",
+               detail: Optional[Callable[[], str]] = None):
+    """Spin ``executor`` until ``cond()`` is true; AssertionError naming ``what`` after ``timeout`` s, with
+    ``detail()`` (e.g. what did arrive, the nodes' logs) appended."""
     deadline = time.monotonic() + timeout
     while not cond():
         if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+            extra = detail() if detail is not None else ""
+            raise AssertionError(f"timed out after {timeout:g} s waiting for {what}" + (f"\n{extra}" if extra else ""))
         executor.spin_once(timeout_sec=0.02)
 
 
-def wait_future(executor, future, timeout: float = 20.0, what: str = "service response"):
+def wait_future(executor, future, timeout: float = EVENT_TIMEOUT, what: str = "service response",
+                detail: Optional[Callable[[], str]] = None):
     """Spin until an rclpy future is done and return its result."""
-    spin_until(executor, future.done, timeout=timeout, what=what)
+    spin_until(executor, future.done, timeout=timeout, what=what, detail=detail)
     return future.result()
 
 
@@ -65,6 +118,20 @@ def group_pids(pgid: int) -> list:
     return pids
 
 
+#: Lines of each node's log shown in a failure message.
+TAIL_LINES = 40
+#: A launcher's node prefix: ``[sim_camera  ] ...`` (uw-sil launch), ``[sim_camera-1] ...`` (ros2 launch).
+_PREFIX = re.compile(r"^\[([^\]\s]+)\s*\] ")
+
+
+def clean_shm():
+    """Remove the Fast DDS shared-memory segments whose owner is gone (after a SIGKILL: they stay in
+    /dev/shm, 35 MB each with the package's profile); the owners' lock rule leaves live runs' alone."""
+    from uw_sil.nodes import clean_stale_shm_segments
+
+    return clean_stale_shm_segments()
+
+
 class Proc:
     """A command in its own process group (as a terminal job), its output lines collected."""
 
@@ -92,6 +159,30 @@ class Proc:
     def text(self) -> str:
         return "\n".join(self.lines)
 
+    def tail(self, n: int = TAIL_LINES) -> str:
+        """The last ``n`` output lines of each node in this process's output, headed by its state: the output
+        of a launcher (``uw-sil launch``, ``ros2 launch``) is split by its ``[node]`` line prefixes, so the
+        tail of one chatty node does not hide another's. Once the process has ended, read after its reader
+        has taken all of its output (a message built earlier showed only the lines read so far)."""
+        ended = self.popen.poll() is not None
+        if ended:
+            self._reader.join(timeout=5)          # everything it wrote, not what the reader had got so far
+        state = f"exit status {self.popen.returncode}" if ended else "running"
+        lines = list(self.lines)
+        head = f"--- {self.name} (pid {self.popen.pid}, {state}): {len(lines)} lines"
+        groups: dict = {}
+        for line in lines:
+            m = _PREFIX.match(line)
+            groups.setdefault(m.group(1) if m else "", []).append(line)
+        if len(groups) <= 1 or len(lines) <= n:
+            shown = lines[-n:]
+            return "\n".join([head + (f", the last {len(shown)}:" if len(shown) < len(lines) else ":"), *shown])
+        parts = [head + ", by prefix:"]
+        for key, group in groups.items():
+            parts.append(f"  -- [{key or 'no prefix'}] last {min(n, len(group))} of {len(group)}:")
+            parts.extend(group[-n:])
+        return "\n".join(parts)
+
     def wait_for(self, pattern: str, timeout: float = 60.0, start: int = 0) -> re.Match:
         """The first output line (from line ``start`` on) matching regex ``pattern``; AssertionError with the
         output when it does not come within ``timeout`` s or the process ends first."""
@@ -109,7 +200,7 @@ class Proc:
                 ended = self.popen.poll() is not None and not self._reader.is_alive()
                 if left <= 0 or ended:
                     why = "ended" if ended else f"did not print it within {timeout:g} s"
-                    raise AssertionError(f"{self.name} {why}: waiting for {pattern!r}\n--- output:\n{self.text}")
+                    raise AssertionError(f"{self.name} {why}: waiting for {pattern!r}\n{self.tail()}")
                 self._new.wait(min(left, 0.5))
 
     def signal(self, sig: int):
@@ -125,7 +216,7 @@ class Proc:
         while group_pids(self.pgid) or self.popen.poll() is None:
             if time.monotonic() - t0 > timeout:
                 raise AssertionError(f"{self.name}: processes {group_pids(self.pgid)} still running after "
-                                     f"{timeout:g} s\n--- output:\n{self.text}")
+                                     f"{timeout:g} s\n{self.tail()}")
             time.sleep(0.02)
         self._reader.join(timeout=5)
         return time.monotonic() - t0
@@ -139,10 +230,40 @@ class Proc:
             except AssertionError:
                 self.signal(signal.SIGKILL)
                 self.popen.wait(timeout=10)
+                clean_shm()
         self._reader.join(timeout=5)
+        if not self._reader.is_alive():
+            self.popen.stdout.close()
 
 
 def assert_clean_output(text: str, what: str = ""):
     """No Python traceback, KeyboardInterrupt or crash in a node's output."""
     for bad in ("Traceback", "KeyboardInterrupt", "Segmentation fault", "Fatal Python error", "exit code -"):
         assert bad not in text, f"{what}: {bad!r} in the output:\n{text}"
+
+
+def logs(*procs) -> str:
+    """The tails of the logs of ``procs`` (Proc objects, or dicts / lists of them): for failure messages."""
+    flat = []
+    for p in procs:
+        if isinstance(p, dict):
+            flat.extend(p.values())
+        elif isinstance(p, (list, tuple)):
+            flat.extend(p)
+        elif p is not None:
+            flat.append(p)
+    return "\n".join(p.tail() for p in flat)
+
+
+@contextmanager
+def logs_on_failure(*procs):
+    """A failed assertion inside the block gets the tail of each process's log appended to its message
+    (``procs`` as for :func:`logs`, read when it fails: a dict the block fills is shown as it is then)."""
+    try:
+        yield
+    except AssertionError as e:
+        text = logs(*procs)
+        if text:
+            e.args = (f"{e.args[0] if e.args else ''}\n{text}", *e.args[1:])
+        raise
+

@@ -373,13 +373,14 @@ def test_sim_camera_node_declares_effect_parameters(tmp_path, frames):
     from rclpy.context import Context
     from rclpy.parameter import Parameter
 
+    from rosproc import domain_id
     from uw_sil.fit.backward import write_params_yaml
     from uw_sil.nodes.sim_camera import SimCameraNode
 
     effects = parse_effects("artificial_light=mild,vignetting=strong")
     path = write_params_yaml(tmp_path / "fit.yaml", P, effects=effects)
     ctx = Context()
-    rclpy.init(context=ctx, args=["--ros-args", "--params-file", str(path)], domain_id=1 + os.getpid() % 200)
+    rclpy.init(context=ctx, args=["--ros-args", "--params-file", str(path)], domain_id=domain_id())
     node = None
     try:
         node = SimCameraNode(context=ctx, parameter_overrides=[Parameter("width", value=160),

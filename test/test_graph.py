@@ -68,6 +68,8 @@ FAKE_PYTHON = r"""#!/bin/bash
 # Stands in for `python -m uw_sil.nodes.entry NAME --ros-args ...`: behaves according to NAME. A long-running
 # node creates the file $READY once its signal traps are set; quick and fail wait for it (when READY is
 # set), so the launcher never signals a node that has not yet installed its traps, however busy the machine.
+# fail prints a line after its error line a moment later, so the launcher reads them in separate chunks
+# (the reason was lost then: 1 in ~10 runs under load printed "fail failed: stopping server").
 name="$3"
 echo "profile=$FASTDDS_DEFAULT_PROFILES_FILE"
 echo -n "partial line without newline"; echo " completed"
@@ -76,7 +78,7 @@ ready() { if [ -n "$READY" ]; then touch "$READY"; fi; }
 case "$name" in
   quick) wait_ready; sleep 0.2; echo "finished"; exit 0 ;;
   fail) wait_ready; sleep 0.2; echo "something broke" >&2; echo "[ERROR] [1795368386.5] [fail]: bag /x does not exist" >&2
-        echo "later output"; exit 3 ;;
+        sleep 0.3; echo "later output"; exit 3 ;;
   stubborn) trap '' INT TERM; ready; echo "ignoring signals"; while :; do sleep 0.05; done ;;
   *) trap 'echo "got SIGINT"; exit 0' INT; ready; echo "trapping SIGINT"; while :; do sleep 0.05; done ;;
 esac
@@ -126,13 +128,13 @@ def test_required_node_ends_the_graph(fake_python, tmp_path):
                          python=fake_python)
     text = out.getvalue()
     assert rc == 0, text
-    assert "[quick ] finished" in text                     # output prefixed with the (padded) node name
-    assert "[server] partial line without newline completed" in text
-    assert "[server] got SIGINT" in text                   # the others were stopped with SIGINT
-    assert "required node quick ended" in text and "all nodes ended cleanly" in text
+    assert "[quick ] finished" in text, text                     # output prefixed with the (padded) node name
+    assert "[server] partial line without newline completed" in text, text
+    assert "[server] got SIGINT" in text, text                   # the others were stopped with SIGINT
+    assert "required node quick ended" in text and "all nodes ended cleanly" in text, text
     profile = str(graph.share_file("config", "fastdds_shm.xml"))
-    assert f"[server] profile={profile}" in text
-    assert not any(_alive(p) for p in _pids(text))
+    assert f"[server] profile={profile}" in text, text
+    assert not any(_alive(p) for p in _pids(text)), text
 
 
 def test_a_node_that_ends_normally_does_not_end_the_graph(fake_python, tmp_path):
@@ -143,10 +145,10 @@ def test_a_node_that_ends_normally_does_not_end_the_graph(fake_python, tmp_path)
     text = out.getvalue()
     # the server kept running after `quick` ended, until Ctrl-C, which it got once and obeyed
     assert rc == 0, text
-    assert text.index("quick exited with status 0") < text.index("SIGINT received: stopping server")
-    assert text.count("[server] got SIGINT") == 1
-    assert "[server] profile=/mine.xml" in text            # a profile chosen by the caller is kept
-    assert not any(_alive(p) for p in _pids(text))
+    assert text.index("quick exited with status 0") < text.index("SIGINT received: stopping server"), text
+    assert text.count("[server] got SIGINT") == 1, text
+    assert "[server] profile=/mine.xml" in text, text            # a profile chosen by the caller is kept
+    assert not any(_alive(p) for p in _pids(text)), text
 
 
 def test_failing_node_stops_the_graph_with_an_error(fake_python, tmp_path):
@@ -155,12 +157,12 @@ def test_failing_node_stops_the_graph_with_an_error(fake_python, tmp_path):
                          env={"PATH": os.environ["PATH"], "READY": str(tmp_path / "ready")}, out=out,
                          python=fake_python)
     text = out.getvalue()
-    assert rc == 1
-    assert "[fail  ] something broke" in text               # stderr is shown too
-    assert "fail exited with status 3 (FAILED)" in text
+    assert rc == 1, text
+    assert "[fail  ] something broke" in text, text               # stderr is shown too
+    assert "fail exited with status 3 (FAILED)" in text, text
     # the graph ends with the node's reason: its last error line
-    assert "fail failed (bag /x does not exist): stopping server" in text
-    assert "FAILED: fail (bag /x does not exist)" in text
+    assert "fail failed (bag /x does not exist): stopping server" in text, text
+    assert "FAILED: fail (bag /x does not exist)" in text, text
 
 
 def test_node_ignoring_signals_is_killed_and_reported(fake_python, tmp_path):
@@ -171,9 +173,9 @@ def test_node_ignoring_signals_is_killed_and_reported(fake_python, tmp_path):
                          python=fake_python, stop_timeout=0.3)
     text = out.getvalue()
     assert rc == 1, text
-    assert "sending SIGTERM" in text and "sending SIGKILL" in text and "killed by SIGKILL" in text
-    assert time.monotonic() - t0 < 5
-    assert not any(_alive(p) for p in _pids(text))
+    assert "sending SIGTERM" in text and "sending SIGKILL" in text and "killed by SIGKILL" in text, text
+    assert time.monotonic() - t0 < 5, text
+    assert not any(_alive(p) for p in _pids(text)), text
 
 
 def test_repeated_ctrl_c_escalates_at_once(fake_python):
@@ -184,8 +186,8 @@ def test_repeated_ctrl_c_escalates_at_once(fake_python):
                          python=fake_python, stop_timeout=60)
     text = out.getvalue()
     assert rc == 1 and "sending SIGTERM" in text and "sending SIGKILL" in text, text
-    assert time.monotonic() - t0 < 10                      # not 2 x stop_timeout
-    assert not any(_alive(p) for p in _pids(text))
+    assert time.monotonic() - t0 < 10, text                      # not 2 x stop_timeout
+    assert not any(_alive(p) for p in _pids(text)), text
 
 
 def test_launch_rejects_bad_graphs():

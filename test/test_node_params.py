@@ -98,7 +98,7 @@ def test_bag_play_string_arrays_have_a_value(ros, small_bag):
     ex.add_node(player)
     ex.add_node(client_node)
     try:
-        assert client.wait_for_services(timeout_sec=TIMEOUT)
+        assert client.wait_for_services(timeout_sec=TIMEOUT), f"parameter services of {client.remote_node_name}"
         names = ["topics", "wait_for_topics", "wait_for_nodes", "bag", "rate"]
         values = wait_future(ex, client.get_parameters(names)).values
         assert [v.type for v in values[:3]] == [ParameterType.PARAMETER_STRING_ARRAY] * 3
@@ -129,7 +129,7 @@ def test_sim_camera_batch_with_a_bad_last_entry_changes_nothing(ros):
         before_values = [p.value for p in sim.get_parameters(names)]
         before = (sim.sim.params, sim.sim.fog, sim.sim.noise_sigma)
         before_image = sim.sim.render(T).image_uint8()
-        assert client.wait_for_services(timeout_sec=TIMEOUT)
+        assert client.wait_for_services(timeout_sec=TIMEOUT), f"parameter services of {client.remote_node_name}"
         good = [Parameter("fog_mode", value="exp"), Parameter("noise_sigma", value=2.0), Parameter("a_r", value=0.9)]
         for last, why in ((Parameter("b_g", value=1.5), "out of range"),           # the descriptor's range
                           (Parameter("fog_mode", value="bogus"), "bogus"),         # the node's own check
@@ -174,7 +174,8 @@ def test_backward_fit_checks_parameters_when_set_and_survives_start(ros):
     ex.add_node(fit)
     ex.add_node(client_node)
     try:
-        assert client.wait_for_services(timeout_sec=TIMEOUT) and start.wait_for_service(timeout_sec=TIMEOUT)
+        assert client.wait_for_services(timeout_sec=TIMEOUT) and start.wait_for_service(timeout_sec=TIMEOUT), \
+            "backward_fit's parameter services and ~/start"
         for bad, why in ((Parameter("frames", value=-3), "out of range"), (Parameter("stride", value=0), "out of range"),
                          (Parameter("optimizer", value="bogus"), "'bogus' is not one of pso, cmaes"),
                          (Parameter("color_model", value="lab"), "not one of rgb, hsv"),

@@ -6,9 +6,7 @@ Every test that touches DDS uses its own ROS_DOMAIN_ID and ROS_AUTOMATIC_DISCOVE
 import importlib.util
 import signal
 import struct
-import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
@@ -45,11 +43,13 @@ from uw_sil.sim.simcam import SimCamera  # noqa: E402
 from uw_sil.bags.synth import synthesize_trial  # noqa: E402
 from uw_sil.sim.transforms import matrix_to_pose  # noqa: E402
 
-from rosproc import domain_id, ros_env, spin_until, wait_future  # noqa: E402
+from rosproc import Proc, domain_id, logs_on_failure, ros_env, spin_until, wait_future  # noqa: E402
 
 SMALL = CameraModel.from_fov(160, 120, 70.0)
 TRUTH = UnderwaterParams(a=(0.40, 0.12, 0.08), b=(0.07, 0.33, 0.43), rho_f=0.10)
-TIMEOUT = 15.0
+TIMEOUT = 30.0        # discovery of a peer, a service answer: normally well under a second
+START = 120.0         # a graph of node processes starting, fitting, ending: 10-60 s on a loaded 2-core machine
+STOP = 30.0           # the graph ending after Ctrl-C (test_node_faults holds the nodes to 5 s)
 MAX_ITER = 30
 
 
@@ -79,7 +79,11 @@ def test_depth_to_image_fields_is_rep118_little_endian():
 
 
 class Probe(Node):
-    """Publishes poses; collects everything sim_camera publishes, by stamp."""
+    """Publishes poses; collects everything sim_camera publishes, by stamp.
+
+    Its subscriptions have sim_camera's best-effort sensor QoS; no frame is lost by design here: the nodes
+    share the test's participant (one rclpy Context), so Fast DDS delivers in-process without a transport,
+    and one pose at a time makes one frame per topic (a history of 5 cannot overflow)."""
 
     TOPICS = {"sim/image_raw": Image, "sim/image_clean": Image, "sim/depth": Image, "sim/mask": Image,
               "sim/camera_info": CameraInfo}
@@ -121,8 +125,15 @@ def test_sim_camera_renders_poses_and_takes_parameters_live(ros):
     ex.add_node(sim)
     ex.add_node(probe)
     try:
+        # matched from both ends: sim_camera publishes an image only to a subscription it has matched
+        sim_pubs = (sim.pub_image, sim.pub_clean, sim.pub_depth, sim.pub_mask, sim.pub_info)
+        sim_pose = [s for s in sim.subscriptions if s.topic_name == "/panel/pose"]
         spin_until(ex, lambda: probe.pub_pose.get_subscription_count() > 0
-                   and all(s.get_publisher_count() > 0 for s in probe.subs), what="topic matching")
+                   and all(s.get_publisher_count() > 0 for s in probe.subs + sim_pose)
+                   and all(p.get_subscription_count() > 0 for p in sim_pubs), what="topic matching",
+                   detail=lambda: f"probe: pose subscribers {probe.pub_pose.get_subscription_count()}, publishers "
+                                  f"{[s.get_publisher_count() for s in probe.subs]}; sim_camera: subscribers "
+                                  f"{[p.get_subscription_count() for p in sim_pubs]}")
         T = facing_pose(1.8, yaw=0.1)
         probe.publish_pose(T, 1_000_000_123)
         spin_until(ex, lambda: probe.frame(1_000_000_123) is not None, what="sim topics for the first pose")
@@ -211,6 +222,8 @@ def test_bag_play_replays_with_recorded_timing(ros, trial):
         Parameter("topics", value=["/camera/image_raw", "/panel/pose"])])
     listener = Node("listener", context=ros)
     got = []
+    # images read best effort, as sim_camera/backward_fit read a camera: none is lost here (one participant,
+    # in-process delivery; the player spins the executor between messages, so a history of 5 does not overflow)
     for topic, cls, qos in (("/camera/image_raw", Image, qos_profile_sensor_data), ("/panel/pose", PoseStamped, 10)):
         listener.create_subscription(cls, topic, lambda m, t=topic: got.append((t, _stamp_ns(m), time.monotonic())),
                                      qos)
@@ -236,7 +249,8 @@ def test_bag_play_replays_with_recorded_timing(ros, trial):
         timer = listener.create_timer(0.4, do_resume)
         t0 = time.monotonic()
         assert player.play(ex)
-        spin_until(ex, lambda: len(got) >= 24, timeout=5, what="all messages")
+        spin_until(ex, lambda: len(got) >= 24, what="all 24 messages (12 images, 12 poses)",
+                   detail=lambda: f"got {len(got)}: {[t for t, *_ in got]}")
     finally:
         ex.shutdown()
         player.destroy_node()
@@ -312,11 +326,7 @@ def test_bag_play_rejects_missing_topics_and_types(ros, trial, tmp_path):
 # ------------------------------------------------------------------------------------------ the graph
 
 
-def _pump(proc, lines):
-    for line in iter(proc.stdout.readline, ""):
-        lines.append(line)
-
-
+@pytest.mark.slow
 def test_backward_graph_refits_sim_camera_and_stops_on_ctrl_c(trial, tmp_path, monkeypatch):
     """bag_play -> backward_fit -> sim_camera re-parameterized; then SIGINT ends everything cleanly."""
     domain = domain_id()
@@ -324,11 +334,7 @@ def test_backward_graph_refits_sim_camera_and_stops_on_ctrl_c(trial, tmp_path, m
     cmd = [sys.executable, "-m", "uw_sil.cli", "launch", "backward", "--bag", str(trial), "--frames", "3",
            "--stride", "4", "--optimizer", "cmaes", "--max-iter", str(MAX_ITER), "--output-yaml", str(fit_yaml),
            "--keep-running"]
-    proc = subprocess.Popen(cmd, env=ros_env(domain), stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                            text=True)
-    lines = []
-    reader = threading.Thread(target=_pump, args=(proc, lines), daemon=True)
-    reader.start()
+    launch = Proc(cmd, ros_env(domain), name="uw-sil launch backward")
     monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     ctx = Context()
     rclpy.init(context=ctx, domain_id=domain)
@@ -339,63 +345,71 @@ def test_backward_graph_refits_sim_camera_and_stops_on_ctrl_c(trial, tmp_path, m
     ex = SingleThreadedExecutor(context=ctx)
     ex.add_node(node)
     try:
-        spin_until(ex, lambda: any(s.startswith(("done", "failed")) for s in status) or proc.poll() is not None,
-                   timeout=90, what="backward_fit to finish")
-        assert status and status[-1].startswith("done"), "".join(lines) + "\n" + "\n".join(status)
-        assert "re-parameterized" in status[-1]
-        fitted = yaml.safe_load(fit_yaml.read_text())["/**"]["ros__parameters"]
-        client = AsyncParameterClient(node, "sim_camera")
-        assert client.wait_for_services(timeout_sec=TIMEOUT)
-        values = wait_future(ex, client.get_parameters(list(RGB_NAMES) + ["fog_mode", "noise_sigma"])).values
-        live = {n: v.double_value for n, v in zip(RGB_NAMES, values) if v.type == ParameterType.PARAMETER_DOUBLE}
-        assert live == {n: fitted[n] for n in RGB_NAMES}        # sim_camera runs with exactly the fit
-        assert values[-2].string_value == fitted["fog_mode"] == "exp2"
-        assert values[-1].double_value == fitted["noise_sigma"] > 0
-        # The node fits exactly what `uw-sil fit` fits offline on the same frames (how close that comes to
-        # the truth is test_backward's subject); and it improved θ over the start of the search.
-        offline = fit_bag(trial, k=3, stride=4, method="cmaes", max_iter=MAX_ITER, seed=0)
-        fitting = next(s for s in status if s.startswith("fitting"))
-        for f in offline.frames:
-            assert f"#{f.index} ({f.range_median:.2f} m" in fitting, fitting
-        np.testing.assert_array_equal(UnderwaterParams.from_dict(live).as_vector(), offline.params.as_vector(),
-                                      err_msg="the node's fit differs from the offline fit")
-        theta = status[-1].split("theta ")[1].split(" in ")[0].split(" -> ")
-        assert float(theta[1]) == pytest.approx(offline.theta_best, abs=5e-5)     # printed with 4 decimals
-        assert offline.theta_best >= offline.theta_x0           # never worse than the optimizer's start point
-        # Ctrl-C: the launcher forwards SIGINT and every node ends cleanly
-        assert proc.poll() is None, "the graph ended although --keep-running was given"
-        proc.send_signal(signal.SIGINT)
-        rc = proc.wait(timeout=30)
-        reader.join(timeout=5)
+        with logs_on_failure(launch):
+            spin_until(ex, lambda: any(s.startswith(("done", "failed")) for s in status)
+                       or launch.popen.poll() is not None, timeout=START,
+                       what="backward_fit's final status (done/failed) on /backward_fit/status",
+                       detail=lambda: f"statuses received: {status}")
+            assert status and status[-1].startswith("done"), status
+            assert "re-parameterized" in status[-1]
+            fitted = yaml.safe_load(fit_yaml.read_text())["/**"]["ros__parameters"]
+            client = AsyncParameterClient(node, "sim_camera")
+            assert client.wait_for_services(timeout_sec=TIMEOUT), "sim_camera's parameter services"
+            values = wait_future(ex, client.get_parameters(list(RGB_NAMES) + ["fog_mode", "noise_sigma"]),
+                                 what="sim_camera's parameters").values
+            live = {n: v.double_value for n, v in zip(RGB_NAMES, values)
+                    if v.type == ParameterType.PARAMETER_DOUBLE}
+            assert live == {n: fitted[n] for n in RGB_NAMES}        # sim_camera runs with exactly the fit
+            assert values[-2].string_value == fitted["fog_mode"] == "exp2"
+            assert values[-1].double_value == fitted["noise_sigma"] > 0
+            # The node fits exactly what `uw-sil fit` fits offline on the same frames (how close that comes to
+            # the truth is test_backward's subject); and it improved θ over the start of the search.
+            offline = fit_bag(trial, k=3, stride=4, method="cmaes", max_iter=MAX_ITER, seed=0)
+            fitting = next(s for s in status if s.startswith("fitting"))
+            for f in offline.frames:
+                assert f"#{f.index} ({f.range_median:.2f} m" in fitting, fitting
+            np.testing.assert_array_equal(UnderwaterParams.from_dict(live).as_vector(),
+                                          offline.params.as_vector(), err_msg="the node's fit differs from the offline fit")
+            theta = status[-1].split("theta ")[1].split(" in ")[0].split(" -> ")
+            assert float(theta[1]) == pytest.approx(offline.theta_best, abs=5e-5)     # printed with 4 decimals
+            assert offline.theta_best >= offline.theta_x0           # never worse than the optimizer's start point
+            # Ctrl-C: the launcher forwards SIGINT and every node ends cleanly
+            assert launch.popen.poll() is None, "the graph ended although --keep-running was given"
+            launch.popen.send_signal(signal.SIGINT)
+            launch.wait_group(STOP)
+            text = launch.text
+            assert launch.popen.returncode == 0
+            assert "SIGINT received" in text and "all nodes ended cleanly" in text
+            pids = [int(line.split("(pid ")[1].split(")")[0]) for line in text.splitlines() if "(pid " in line]
+            assert len(pids) == 3
+            for pid in pids:
+                assert not Path(f"/proc/{pid}").exists(), f"node process {pid} outlived the launcher"
+            assert "bag_play exited with status 0" in text     # the bag ended before the graph did
     finally:
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGINT)
-            proc.wait(timeout=30)
+        launch.stop()
         ex.shutdown()
         node.destroy_node()
         ctx.try_shutdown()
-    text = "".join(lines)
-    assert rc == 0, text
-    assert "SIGINT received" in text and "all nodes ended cleanly" in text, text
-    pids = [int(line.split("(pid ")[1].split(")")[0]) for line in text.splitlines() if "(pid " in line]
-    assert len(pids) == 3
-    for pid in pids:
-        assert not Path(f"/proc/{pid}").exists(), f"node process {pid} outlived the launcher"
-    assert "bag_play exited with status 0" in text     # the bag ended before the graph did
 
 
+@pytest.mark.slow
 def test_backward_graph_with_a_bag_ends_by_itself(trial, tmp_path):
     """Asked for more frames than the bag has: the frames there are fitted once the bag has ended, then
     backward_fit exits, which ends the graph (status 0, parameters file written)."""
     fit_yaml = tmp_path / "fit.yaml"
     cmd = [sys.executable, "-m", "uw_sil.cli", "launch", "backward", "--bag", str(trial), "--frames", "10",
            "--stride", "4", "--optimizer", "cmaes", "--max-iter", "3", "--output-yaml", str(fit_yaml), "--rate", "2"]
-    out = subprocess.run(cmd, env=ros_env(domain_id()), capture_output=True, text=True, timeout=90)
-    text = out.stdout + out.stderr
-    assert out.returncode == 0, text
-    assert "fitting the 3 of 10 frames taken so far" in text, text
-    assert "required node backward_fit ended: stopping sim_camera" in text
-    assert "all nodes ended cleanly" in text
+    launch = Proc(cmd, ros_env(domain_id()), name="uw-sil launch backward")
+    try:
+        with logs_on_failure(launch):
+            launch.wait_group(START)
+            text = launch.text
+            assert launch.popen.returncode == 0
+            assert "fitting the 3 of 10 frames taken so far" in text
+            assert "required node backward_fit ended: stopping sim_camera" in text
+            assert "all nodes ended cleanly" in text
+    finally:
+        launch.stop()
     params = yaml.safe_load(fit_yaml.read_text())["/**"]["ros__parameters"]
     assert set(params) == set(RGB_NAMES) | {"fog_mode", "noise_sigma"}
     assert 0.5 < params["noise_sigma"] < 5.0      # the trial's camera noise, estimated on the water
@@ -404,11 +418,16 @@ def test_backward_graph_with_a_bag_ends_by_itself(trial, tmp_path):
 def test_play_command_ends_with_the_bag(trial):
     """`uw-sil play` replays the bag and returns when it is done (no subscriber needed)."""
     t0 = time.monotonic()
-    out = subprocess.run([sys.executable, "-m", "uw_sil.cli", "play", str(trial), "--rate", "4"],
-                         env=ros_env(domain_id()), capture_output=True, text=True, timeout=60)
-    assert out.returncode == 0, out.stdout + out.stderr
-    # 12 frames x (image, camera_info, pose, tf); /tf is skipped (with a warning) when tf2_msgs is missing
-    tf = importlib.util.find_spec("tf2_msgs") is not None
-    assert f"done: played {48 if tf else 36} messages" in out.stdout
-    assert tf or "skipping /tf" in out.stdout
+    play = Proc([sys.executable, "-m", "uw_sil.cli", "play", str(trial), "--rate", "4"], ros_env(domain_id()),
+                name="uw-sil play")
+    try:
+        with logs_on_failure(play):
+            play.wait_group(START)
+            assert play.popen.returncode == 0
+            # 12 frames x (image, camera_info, pose, tf); /tf is skipped (with a warning) when tf2_msgs is missing
+            tf = importlib.util.find_spec("tf2_msgs") is not None
+            assert f"done: played {48 if tf else 36} messages" in play.text
+            assert tf or "skipping /tf" in play.text
+    finally:
+        play.stop()
     assert time.monotonic() - t0 < 30

@@ -151,7 +151,7 @@ def _supervise(procs, sel, stop_requested, out, width, stop_timeout) -> int:
             lines, _, np_.buffer = data.rpartition(b"\n")
             if lines:
                 _emit(out, np_.spec.name, lines, width)
-                np_.reason = _graph.failure_reason([np_.reason, *lines.decode(errors="replace").splitlines()])
+                _note_reason(np_, lines)
         for np_ in procs:
             if np_.returncode is None and np_.popen.poll() is not None:
                 np_.returncode = np_.popen.returncode
@@ -191,6 +191,12 @@ def _supervise(procs, sel, stop_requested, out, width, stop_timeout) -> int:
     return 1 if failed else 0
 
 
+def _note_reason(np_, data: bytes):
+    """Keep the last problem the node reported: a chunk of output without one leaves the earlier reason (a line
+    printed after the error line, read separately, made the launcher forget why the node failed)."""
+    np_.reason = _graph.failure_reason(data.decode(errors="replace").splitlines()) or np_.reason
+
+
 def _drain(sel, np_, out, width):
     """Print what a node wrote before exiting."""
     f = np_.popen.stdout
@@ -202,7 +208,7 @@ def _drain(sel, np_, out, width):
     np_.buffer = b""
     if rest:
         _emit(out, np_.spec.name, rest, width)
-        np_.reason = _graph.failure_reason([np_.reason, *rest.decode(errors="replace").splitlines()])
+        _note_reason(np_, rest)
 
 
 def _signal_all(procs, sig):

@@ -1,0 +1,48 @@
+"""The helpers of the node tests (test/rosproc.py): domain ids no two tests share, even across processes;
+failure messages that carry the tail of every node's log."""
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+import rosproc
+from rosproc import Proc, domain_id, logs_on_failure, release_domains
+
+HERE = Path(__file__).resolve().parent
+
+
+def test_domain_ids_are_not_shared_between_processes():
+    """A domain id reserved by another process (a concurrent test run) is not handed out here while that
+    process holds it; ids are 1..232 (Fast DDS' ports end there)."""
+    holder = subprocess.Popen([sys.executable, "-c", "import sys; sys.path.insert(0, sys.argv[1]); import rosproc; "
+                               "ids = [rosproc.domain_id() for _ in range(100)]; print(' '.join(map(str, ids)), "
+                               "flush=True); sys.stdin.read()", str(HERE)],
+                              stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        theirs = set(map(int, holder.stdout.readline().split()))
+        assert len(theirs) == 100 and all(1 <= d <= rosproc.N_DOMAINS for d in theirs)
+        mine = {domain_id() for _ in range(20)}
+        assert len(mine) == 20 and not mine & theirs
+    finally:
+        holder.stdin.close()          # the holder exits: its reservations go with it
+        holder.wait(timeout=30)
+    release_domains()
+
+
+def test_failure_messages_carry_each_nodes_log_tail():
+    """A launcher's output is split by node prefix, so a chatty node does not push another's last lines out
+    of the message; the output is complete once the process has ended."""
+    script = ("for i in range(100): print(f'[chatty] line {i}')\n"
+              "print('[quiet ] [ERROR] [quiet]: the one line that matters')\n"
+              "print('[launch] done: FAILED: quiet')\n")
+    p = Proc([sys.executable, "-c", script], env=None, name="launcher")
+    p.wait_group(30)
+    with pytest.raises(AssertionError) as e:
+        with logs_on_failure({"launch": p}):
+            assert False, "what failed"
+    text = str(e.value)
+    assert text.startswith("what failed\n") and "--- launcher (pid " in text and "exit status 0" in text
+    assert "the one line that matters" in text and "done: FAILED: quiet" in text
+    assert "line 99" in text and "line 59" not in text        # the last 40 of the chatty node
+    assert "-- [chatty] last 40 of 100:" in text
