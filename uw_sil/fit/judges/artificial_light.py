@@ -25,8 +25,7 @@ class ArtificialLightJudge(Judge):
                    "veil": 0.01})
 
     def order(self, job):
-        p = job.prox.get(self.effect)
-        return p.explained / 0.25 if p is not None else 0.0
+        return self.proxy_share(job)
 
     def start(self, job):
         p = job.prox.get(self.effect)

@@ -15,8 +15,7 @@ class BackscatterCoefficientJudge(Judge):
     res = "low"
 
     def order(self, job):
-        p = job.prox.get(self.effect)
-        return p.explained / 0.25 if p is not None else 0.0
+        return self.proxy_share(job)
 
     def start(self, job):
         p = job.prox.get(self.effect)

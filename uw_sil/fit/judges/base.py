@@ -220,6 +220,12 @@ class Judge:
         s = self.signature(job)
         return float(s.score) if s is not None and s.judged else 0.0
 
+    def proxy_share(self, job: Job) -> float:
+        """The screening proxy's share of the residual it explains, 25 % = 1 (the photometric effects, whose
+        residual footprints overlap, are ordered by it)."""
+        p = job.prox.get(self.effect)
+        return p.explained / 0.25 if p is not None else 0.0
+
     def start(self, job: Job) -> dict:
         """Start values of the effect's parameters for the refit (physical estimates; {} = defaults)."""
         return {}

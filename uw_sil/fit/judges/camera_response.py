@@ -10,8 +10,7 @@ class CameraResponseJudge(Judge):
     res = "low"
 
     def order(self, job):
-        p = job.prox.get(self.effect)
-        return p.explained / 0.25 if p is not None else 0.0
+        return self.proxy_share(job)
 
     def start(self, job):
         return {"gamma": 1.1, "black": 0.01}

@@ -15,12 +15,11 @@ class ForwardScatterJudge(Judge):
     res = "high"
 
     def order(self, job):
-        s, p = self.signature(job), job.prox.get(self.effect)
-        sig = s.score if s is not None and s.judged else 0.0
+        sig = super().order(job)              # the signature's score
         pose = job.sigs.get("pose_error")
         if pose is not None and pose.judged and pose.score >= 3.0:
             return sig            # misaligned edges also look blurred at low resolution: trust the aligned test
-        return max(sig, p.explained / 0.25 if p is not None else 0.0)
+        return max(sig, self.proxy_share(job))
 
     def start(self, job):
         p = job.prox.get(self.effect)

@@ -15,9 +15,8 @@ class UnmodeledGeometryJudge(Judge):
                   {"floor_y": -4.5, "albedo": 1.3, "contrast": 0.3})
 
     def order(self, job):
-        s, p = self.signature(job), job.prox.get(self.effect)
-        sig = s.score if s is not None and s.judged else 0.0
-        return max(sig, p.explained / 0.25 if p is not None else 0.0)
+        sig = super().order(job)              # the signature's score
+        return max(sig, self.proxy_share(job))
 
     def start(self, job):
         return {"floor_y": -0.9, "albedo": 0.8, "contrast": 0.6}

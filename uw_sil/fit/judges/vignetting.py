@@ -14,8 +14,7 @@ class VignettingJudge(Judge):
     res = "low"
 
     def order(self, job):
-        s, p = self.signature(job), job.prox.get(self.effect)
-        sig = s.score if s is not None and s.judged else 0.0
+        sig, p = super().order(job), job.prox.get(self.effect)
         return sig * (0.5 + min(1.0, p.explained * 2)) if p is not None else sig
 
     def start(self, job):
