@@ -261,7 +261,8 @@ def fit_yaml(trial, tmp_path_factory):
 
 
 class FrameProbe:
-    """Publishes one pose again and again; keeps the mean of every sim/image_raw frame with its arrival time."""
+    """Publishes one pose again and again, stamped with the time of publishing; keeps the mean of every
+    sim/image_raw frame with its stamp (the pose's): a frame stamped after an event was rendered after it."""
 
     def __init__(self, domain):
         from geometry_msgs.msg import PoseStamped
@@ -279,7 +280,8 @@ class FrameProbe:
         self.node = Node("test_probe", context=self.ctx)
         self.frames = []
         self.node.create_subscription(Image, "/sim/image_raw", lambda m: self.frames.append(
-            (time.monotonic(), float(np.frombuffer(bytes(m.data), np.uint8).mean()))), qos_profile_sensor_data)
+            (m.header.stamp.sec * 10**9 + m.header.stamp.nanosec, float(np.frombuffer(bytes(m.data), np.uint8).mean()))),
+            qos_profile_sensor_data)
         pub = self.node.create_publisher(PoseStamped, "/panel/pose", 10)
         pos, quat = matrix_to_pose(facing_pose(1.8))
         msg = PoseStamped()
@@ -295,12 +297,17 @@ class FrameProbe:
         self.ex = SingleThreadedExecutor(context=self.ctx)
         self.ex.add_node(self.node)
 
-    def frames_after(self, t: float, n: int = 1, timeout: float = 30.0) -> list:
+    def now(self) -> int:
+        return self.node.get_clock().now().nanoseconds
+
+    def frames_after(self, t_ns: int, n: int = 1, timeout: float = 30.0) -> list:
+        """Means of the frames of poses published after ``t_ns`` (at least ``n`` of them)."""
         deadline = time.monotonic() + timeout
-        while len([f for f in self.frames if f[0] > t]) < n:
-            assert time.monotonic() < deadline, f"no sim/image_raw frame for {timeout} s"
+        while len([f for f in self.frames if f[0] > t_ns]) < n:
+            assert time.monotonic() < deadline, (f"fewer than {n} sim/image_raw frames of poses published after "
+                                                 f"{t_ns} in {timeout} s ({len(self.frames)} frames in all)")
             self.ex.spin_once(timeout_sec=0.05)
-        return [m for ts, m in self.frames if ts > t]
+        return [m for ts, m in self.frames if ts > t_ns]
 
     def close(self):
         self.ex.shutdown()
@@ -339,7 +346,7 @@ def test_ros2_run_sim_camera_and_ros2_param(ws, fit_yaml):
                                                            if "/dev/shm/fastdds_" in line and "port" not in line)]
             assert max(sizes, default=0) >= 32 * 2**20, sizes
             probe = FrameProbe(domain)
-            before = probe.frames_after(0.0, 2)[-1]
+            before = probe.frames_after(0, 2)[-1]
 
             get, describe = ws.run(domain, ("param", "get", *CLI, "/sim_camera", "a_r"),
                                    ("param", "describe", *CLI, "/sim_camera", "a_r", "width", "height", "hfov_deg",
@@ -362,7 +369,9 @@ def test_ros2_run_sim_camera_and_ros2_param(ws, fit_yaml):
             # a valid value is accepted and the next frame changes
             r = ws.run(domain, ("param", "set", *CLI, "/sim_camera", "a_r", "1.5"))[0]
             assert r.stdout.strip() == "Set parameter successful", r.stdout
-            after = probe.frames_after(time.monotonic(), 1)[0]
+            # a frame of a pose published once the change was confirmed (one already in flight was rendered
+            # before it: 'after' equal to 'before' in a loaded run)
+            after = probe.frames_after(probe.now(), 1)[0]
             assert abs(after - before) > 1.0, (before, after)
             # invalid values are rejected with the node's reason (ros2 param set still exits 0)
             bad = ws.run(domain, ("param", "set", *CLI, "/sim_camera", "a_r", "9.0"),
