@@ -276,7 +276,7 @@ class BackwardObjective:
 
     @staticmethod
     def _noise_sigma(frame: FitFrame, sim_noise) -> np.ndarray:
-        from ..sim.noise import estimate_noise_sigma
+        from ..sim.noise import water_noise_sigma
 
         if isinstance(sim_noise, str):
             if sim_noise == "none":
@@ -284,10 +284,7 @@ class BackwardObjective:
             if sim_noise != "estimate":
                 raise ValueError(f"sim_noise must be 'estimate', 'none' or a number, got {sim_noise!r}")
             water = frame.render.labels == 0
-            try:
-                return estimate_noise_sigma(frame.image, water)
-            except ValueError:          # panel fills the frame: estimate on all pixels (edges barely matter)
-                return estimate_noise_sigma(frame.image)
+            return water_noise_sigma(frame.image, water)
         sigma = np.broadcast_to(np.asarray(sim_noise, dtype=float), (3,)).copy()
         if not np.all(np.isfinite(sigma)) or np.any(sigma < 0):
             raise ValueError(f"sim_noise must be >= 0, got {sim_noise!r}")

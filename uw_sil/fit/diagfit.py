@@ -83,16 +83,10 @@ def noise_sigmas(rframes: Sequence[ReducedFrame]) -> list:
     """Camera noise per frame and channel (grey levels at the reduced size), from the real water; at least the
     8-bit quantization's (averaged over the reduction's blocks). Near-black, quantized or demosaiced water
     can read as 0 noise, and a zero noise level turned into infinite weights in the signature fits."""
-    from ..sim.noise import estimate_noise_sigma
+    from ..sim.noise import water_noise_sigma
 
-    out = []
-    for rf in rframes:
-        try:
-            s = estimate_noise_sigma(rf.image, rf.water)
-        except ValueError:
-            s = estimate_noise_sigma(rf.image)
-        out.append(np.maximum(np.asarray(s, float), QUANTIZATION_SIGMA / max(1, rf.factor)))
-    return out
+    return [np.maximum(np.asarray(water_noise_sigma(rf.image, rf.water), float), QUANTIZATION_SIGMA / max(1, rf.factor))
+            for rf in rframes]
 
 
 class FrameObjective:

@@ -195,16 +195,9 @@ def _effect_flat(params: dict, names) -> dict:
 
 def _full_res_noise(frames) -> list:
     """Camera noise (grey levels, per channel) of each frame at its own resolution, from its open water."""
-    from ..sim.noise import estimate_noise_sigma
+    from ..sim.noise import water_noise_sigma
 
-    out = []
-    for f in frames:
-        water = ~np.isfinite(f.render.range)
-        try:
-            out.append([float(v) for v in estimate_noise_sigma(f.image, water)])
-        except ValueError:
-            out.append([float(v) for v in estimate_noise_sigma(f.image)])
-    return out
+    return [[float(v) for v in water_noise_sigma(f.image, ~np.isfinite(f.render.range))] for f in frames]
 
 
 def _particle_blocks(ctx, sigs: dict, factor: int):
@@ -388,7 +381,7 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
         if judge.absorb:
             job, current = judge.absorb_into(job, current, r)
         else:
-            current = with_effect(current, r, judge)
+            current = with_effect(current, r)
         say(f"round {rnd}: accepted {e} (held-out θ {before:.4f} -> {current.sel_pf.mean():.4f}, "
             f"margin {margin:.4f})")
         accepted.append({"effect": e, "refit": r, "strength": strength, "margin": margin, "before": before,

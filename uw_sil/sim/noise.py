@@ -13,7 +13,7 @@ from typing import Optional
 
 import numpy as np
 
-__all__ = ["estimate_noise_sigma", "NoiseField"]
+__all__ = ["estimate_noise_sigma", "water_noise_sigma", "NoiseField"]
 
 _MAD_TO_SIGMA = 1.4826
 
@@ -50,6 +50,15 @@ def estimate_noise_sigma(image, mask: Optional[np.ndarray] = None, min_pixels: i
     dv = d[ok]                                               # (P, C)
     mad = np.median(np.abs(dv - np.median(dv, axis=0)), axis=0)
     return _MAD_TO_SIGMA * mad / np.sqrt(2.0)
+
+
+def water_noise_sigma(image, water: np.ndarray) -> np.ndarray:
+    """:func:`estimate_noise_sigma` on the open water of a frame (where the scene is flat), or on the whole
+    frame when the water has too few pixels (the panel fills the view: edges barely move the median)."""
+    try:
+        return estimate_noise_sigma(image, water)
+    except ValueError:
+        return estimate_noise_sigma(image)
 
 
 class NoiseField:

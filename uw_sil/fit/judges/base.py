@@ -22,7 +22,6 @@ kept), so a model that contains another cannot lose to it through the optimizer.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field, replace
 from typing import Callable, Optional
 
@@ -341,12 +340,8 @@ def gain_words(b_held: float, c_held: float, statistic: Optional[dict] = None) -
     return f"modelling it raises held-out θ from {b_held:.3f} to {c_held:.3f}"
 
 
-def with_effect(current: Current, r: Refit, judge: Judge) -> Current:
+def with_effect(current: Current, r: Refit) -> Current:
     """The current model after accepting ``r`` (a ``theta`` effect)."""
     return replace(current, effects=r.effects, values={e: dict(r.params["effects"][e]) for e in r.effects},
                    base=np.array([r.params["base"][k] for k in r.params["base"]], float), theta_fit=r.theta_fit,
                    sel_pf=np.asarray(r.sel_pf, float), x=r.x, model=r.model)
-
-
-def deg(v: float) -> float:
-    return math.degrees(v)

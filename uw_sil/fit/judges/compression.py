@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ...sim.params import RGB_NAMES
 from .base import Judge, Refit, bootstrap_se
 
 #: Qualities tried (IJG scale): what cameras and image_transport use, from near-lossless down.
@@ -43,7 +44,7 @@ class CompressionJudge(Judge):
 
     def refit(self, job, current, x_starts=None):
         from ...sim.effects.compression import jpeg_roundtrip
-        from ...sim.noise import NoiseField, estimate_noise_sigma
+        from ...sim.noise import NoiseField, water_noise_sigma
         from ...sim.optics import degrade
         from ..signatures import luminance
 
@@ -57,11 +58,7 @@ class CompressionJudge(Judge):
             for k, f in enumerate(frames):
                 rr = f.render
                 S = degrade(rr.rgb, rr.range, rr.depth, p, fog=job.fog) * 255.0
-                water = ~np.isfinite(rr.range)
-                try:
-                    sg = estimate_noise_sigma(f.image, water)
-                except ValueError:
-                    sg = estimate_noise_sigma(f.image)
+                sg = water_noise_sigma(f.image, ~np.isfinite(rr.range))
                 S = S.astype(np.float32)
                 NoiseField(S.shape, sg, seed=job.seed + 23 * k).apply(S)
                 S = np.clip(S, 0, 255) / 255.0
@@ -83,7 +80,7 @@ class CompressionJudge(Judge):
                 "improvement": float(imp.mean()), "margin": max(0.01, 2.0 * bootstrap_se(imp, seed=job.seed)),
                 "per_frame_improvement": imp.tolist()}
         values = {"quality": float(q), **self.fixed}
-        params = {"base": {k: float(v) for k, v in zip(("a_r", "a_g", "a_b", "b_r", "b_g", "b_b", "rho_f"), p)},
+        params = {"base": {k: float(v) for k, v in zip(RGB_NAMES, p)},
                   "effects": {self.effect: values}}
         return Refit(effect=self.effect, effects=(self.effect,), x=np.array([q]), params=params,
                      theta_fit=current.theta_fit, sel_pf=np.asarray(current.sel_pf), statistic=stat)

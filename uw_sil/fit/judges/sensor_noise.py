@@ -37,7 +37,7 @@ def noise_refit(fit_f, held_f, base_x, sig, fog, seed, ref_held_pf, base_theta_t
     statistics and the simulation's is compared for the base model (constant Gaussian noise estimated on
     the water, as the backward fit adds) and the candidate. θ is measured on the held-out frames at full
     resolution for both; the candidate's θ is reported as the base reference plus that difference."""
-    from ...sim.noise import NoiseField, estimate_noise_sigma
+    from ...sim.noise import NoiseField, water_noise_sigma
     from ...sim.optics import degrade
     from ..optimize import optimize
     from ..signatures import luminance, noise_statistics, particle_exclusion
@@ -119,11 +119,7 @@ def noise_refit(fit_f, held_f, base_x, sig, fog, seed, ref_held_pf, base_theta_t
     def compare(frames, S_list, real, hits, mdl):
         eb, ec, tb, tc = [], [], [], []
         for k, f in enumerate(frames):
-            water = ~np.isfinite(f.render.range)
-            try:
-                sg = estimate_noise_sigma(f.image, water)
-            except ValueError:
-                sg = estimate_noise_sigma(f.image)
+            sg = water_noise_sigma(f.image, ~np.isfinite(f.render.range))
             base_img = S_list[k].astype(np.float32).copy()
             NoiseField(base_img.shape, sg, seed=seed + 17 * k).apply(base_img)
             cand = mdl.simulate(k, x[None])[0] * 255.0
