@@ -16,6 +16,15 @@ import pytest
 
 from conftest import import_or_skip  # noqa: E402  (skips locally, fails in CI when rclpy is missing)
 
+try:   # the session's colcon workspace with the real ros2 tools (skips where they or rclpy are missing)
+    from test_ros2_tools import ws  # noqa: F401
+except pytest.skip.Exception as _why:
+    _skip_reason = str(_why)
+
+    @pytest.fixture(scope="session")
+    def ws():
+        pytest.skip(_skip_reason)
+
 SMALL = (160, 120)
 #: The diagnosis budget of the graph tests (a lamp-lit trial: the lamps win against these two).
 BUDGET = {"diagnose_frames": 6, "diagnose_max_effects": 1, "max_iter": 6,
@@ -397,3 +406,59 @@ def test_params_file_of_the_diagnosis_renders_the_offline_extended_model(ros, tm
     finally:
         ref.close()
         node.destroy_node()
+
+
+@pytest.fixture(scope="module")
+def field_bag(tmp_path_factory):
+    """A lamp-lit trial as a field recording: JPEG on camera/image_raw/compressed, no pose (the panel's markers
+    only), no camera_info (a calibration file); 320x240 so that the markers can be read, 2.8 m to 1.2 m."""
+    from uw_sil.bags.synth import synthesize_trial, truth_path
+    from uw_sil.sim.camera import CameraModel
+
+    d = tmp_path_factory.mktemp("field")
+    bag, cam = d / "field.mcap", d / "camera.yaml"
+    synthesize_trial(bag, n_frames=12, seed=3, camera=CameraModel.from_fov(320, 240),
+                     effects={"artificial_light": "strong"}, image_format="jpeg", pose_in="none", info_topic=None,
+                     image_topic="/camera/image_raw/compressed", camera_yaml=cam, start_m=2.8, end_m=1.2)
+    truth_path(bag).unlink()
+    return bag, cam
+
+
+@pytest.mark.slow
+def test_ros2_launch_backward_diagnose_on_a_field_recording(ws, field_bag, tmp_path):
+    """The real `ros2 launch uw_sil backward.launch.py diagnose:=true` (colcon build, as test_ros2_tools) on a
+    recording of compressed images without pose or camera_info: panel_pose publishes the marker poses, the
+    calibration comes from camera_info_file; /diagnostics names the lamps, sim_camera holds them, and its frame at
+    a held-out pose is closer to the recording than the base model's."""
+    _ros()
+    from uw_sil.bags import read_samples
+    from uw_sil.bags.camera_yaml import load_camera_yaml
+    from uw_sil.bags.source import PoseFrom
+
+    from rosproc import assert_clean_output, domain_id, logs_on_failure
+
+    bag, cam = field_bag
+    domain = domain_id()
+    watch = Watcher(domain)
+    args = ["launch", "uw_sil", "backward.launch.py", f"bag:={bag}", "diagnose:=true", "keep_running:=true",
+            "image_transport:=compressed", "pose_source:=markers", f"camera_info_file:={cam}",
+            f"output_yaml:={tmp_path / 'ext.yaml'}", f"output_json:={tmp_path / 'diag.json'}",
+            *(f"{k}:={v}" for k, v in BUDGET.items())]
+    launch = ws.start(domain, *args, name="ros2 launch backward diagnose:=true")
+    try:
+        with logs_on_failure(launch):
+            watch.spin_until(lambda: any(t.startswith(("done:", "failed:")) for t in watch.status), 900,
+                             "backward_fit to finish the diagnosis", detail=launch.tail)
+            assert watch.status[-1].startswith("done: diagnosis: artificial_light"), watch.status[-1]
+            watch.spin_until(lambda: watch.diagnosis and watch.diagnostics, 30, "the diagnosis messages")
+            assert re.search(r"\[panel_pose-\d\]", launch.text), "panel_pose did not run"
+            samples = list(read_samples(bag, image_topic="/camera/image_raw/compressed", info_topic=None,
+                                        pose_topic=None, pose_from=PoseFrom.parse("markers"),
+                                        calibration=load_camera_yaml(cam)))
+            _check_live_diagnosis(watch, launch, tmp_path, samples, "ros2 launch (compressed, markers)")
+            launch.signal(2)
+            launch.wait_group(60)
+        assert_clean_output(launch.text, "ros2 launch")
+    finally:
+        launch.stop()
+        watch.close()
