@@ -317,6 +317,7 @@ def test_residual_evidence_accepts_what_theta_cannot_see():
                      sel_pf=np.full(4, theta), extra={} if E is None else {"ls_sel_E": np.asarray(E, float)})
 
     j = Judge()
+    j.residual_evidence = True
     strong = refit([0.14, 0.13, 1.6, 25.5])                      # lamps on a physically lit dive: -35 .. -67 %
     imp = residual_improvement(cur, strong)
     assert np.allclose(imp, 1 - np.array([0.14, 0.13, 1.6, 25.5]) / cur.ls_sel_E)
@@ -327,6 +328,8 @@ def test_residual_evidence_accepts_what_theta_cannot_see():
     noisy = refit(cur.ls_sel_E * np.array([0.5, 1.5, 0.6, 1.4]))    # mean 0 % with a large spread
     assert j.accept(noisy, cur, 0.003, margin_for(residual_improvement(cur, noisy), 14,
                                                   floor=MIN_RESIDUAL_MARGIN))[0] is False
+    edges = Judge()                                              # blur, geometry, pose: θ only
+    assert edges.accept(strong, cur, 0.003, rm)[0] is False
     assert residual_improvement(cur, refit(None)) is None
     assert j.accept(refit(None), cur, 0.003, None)[0] is False
     assert j.accept(refit(None, theta=0.81), cur, 0.003, None)[:1] == (True,)

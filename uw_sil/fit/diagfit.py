@@ -373,8 +373,9 @@ def residual_energy(model, X) -> np.ndarray:
     return out
 
 
-def ls_fit(model: "EffectModel", x0, stride: int = 2, max_nfev: int = 12) -> np.ndarray:
-    """Least-squares fit (grey levels, every ``stride``-th pixel) of a candidate model to its frames, from x0."""
+def ls_fit(model: "EffectModel", x0, stride: int = 2, max_nfev: int = 12, interrupt=None) -> np.ndarray:
+    """Least-squares fit (grey levels, every ``stride``-th pixel) of a candidate model to its frames, from x0;
+    ``interrupt`` is called before every evaluation (raises to stop)."""
     from scipy.optimize import least_squares
 
     lo, hi = model.bounds()
@@ -382,6 +383,8 @@ def ls_fit(model: "EffectModel", x0, stride: int = 2, max_nfev: int = 12) -> np.
     reals = [rf.image[stride // 2::stride, stride // 2::stride] for rf in model.rframes]
 
     def resid(x):
+        if interrupt is not None:
+            interrupt()
         out = []
         for k, R in enumerate(reals):
             I = model.simulate(k, x[None])[0][stride // 2::stride, stride // 2::stride]

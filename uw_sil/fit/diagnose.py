@@ -252,7 +252,8 @@ def _candidate_row(rnd: int, current, e: str, r, margin: float, ok: bool, streng
            "criterion": criterion, "strength": float(strength), "params": _effect_flat(r.params, [e]),
            "kept_current_optimum": bool(r.started_at_current)}
     if imp is not None:
-        row["heldout_residual"] = {"improvement": float(np.mean(imp)), "per_frame_improvement": np.asarray(imp).tolist(),
+        row["heldout_residual"] = {"improvement": float(np.mean(imp)),
+                                   "per_frame_improvement": np.asarray(imp).tolist(),
                                    "margin": res_margin, "current": float(np.mean(current.ls_sel_E)),
                                    "candidate": float(np.mean(r.extra["ls_sel_E"]))}
     if r.statistic is not None:
@@ -374,7 +375,9 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
             if rnd == 1:
                 first[e] = float(np.mean(r.sel_pf - current.sel_pf)) if not ok else max(strength, 1e-6)
             rows.append(_candidate_row(rnd, current, e, r, margin, ok, strength, crit, imp, res_margin))
-            if ok and (best is None or strength > best[2]):
+            # θ, the paper's criterion, first: the residual decides only where no candidate raised θ (it
+            # is the likelihood of the dark, noisy frames θ is blind to, not a rival ranking of the others)
+            if ok and (best is None or (crit == "theta", strength) > (best[4] == "theta", best[2])):
                 best = (e, r, strength, margin, crit)
         candidates += rows
         steps.append({"round": rnd, "model": current.name, "theta_heldout": float(current.sel_pf.mean()),
@@ -403,13 +406,16 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
             job, current = judge.absorb_into(job, current, r)
             current = current_ls(job, current, max_nfev=LS_BASE_NFEV)
         else:
-            current = with_effect(current, r)
+            # the reference of the next round's residual evidence: the new model's least-squares fit polished
+            # with the base fit's least-squares budget (a candidate's fit must not win by a longer polish alone)
+            current = current_ls(job, with_effect(current, r), max_nfev=LS_BASE_NFEV)
         say(f"round {rnd}: accepted {e} by held-out {'residual' if keep else 'θ'} (held-out θ {before:.4f} -> "
             f"{current.sel_pf.mean():.4f}, residual {np.mean(before_E):.3g} -> {np.mean(current.ls_sel_E):.3g} "
             f"grey levels²)")
         accepted.append({"effect": e, "refit": r, "strength": strength, "margin": margin, "before": before,
                          "after": float(current.sel_pf.mean()), "criterion": crit,
-                         "residual_before": float(np.mean(before_E)), "residual_after": float(np.mean(current.ls_sel_E))})
+                         "residual_before": float(np.mean(before_E)),
+                         "residual_after": float(np.mean(current.ls_sel_E))})
         fits[current.name] = {"x": r.x, "held_pf": np.asarray(r.sel_pf), "model": r.model,
                               "model_effects": list(r.effects)}
         pool.remove(e)

@@ -14,6 +14,7 @@ class ArtificialLightJudge(Judge):
     # (fixed at 1, a foreign rig normalized at 2.5 m instead of 2 m could not be fitted)
     free = ("offset_x", "offset_y", "toe_in", "half_angle", "shape", "balance", "fill", "power", "veil")
     res = "low"
+    residual_evidence = True
     sigma = 0.12
     # no uniform light at all (lamps alone: the deep sea), one lamp only, a symmetric pair
     physical_bounds = ("fill", "balance")

@@ -13,6 +13,7 @@ class BackscatterCoefficientJudge(Judge):
     effect = "backscatter_coefficient"
     free = ("ratio_r", "ratio_g", "ratio_b", "decay")
     res = "low"
+    residual_evidence = True
 
     def order(self, job):
         return self.proxy_share(job)

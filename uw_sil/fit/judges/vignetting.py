@@ -12,6 +12,7 @@ class VignettingJudge(Judge):
     effect = "vignetting"
     free = ("k1", "k2", "cx", "cy")
     res = "low"
+    residual_evidence = True
 
     def order(self, job):
         sig, p = super().order(job), job.prox.get(self.effect)
