@@ -131,6 +131,32 @@ def test_graphs_with_diagnose_compressed_images_markers_and_a_camera_file():
         g.parse({"pose_source": "gps"})
 
 
+def test_forward_graph_reads_compressed_images_markers_and_a_camera_file():
+    """The forward graph takes a field recording as the backward graph does: the enhancer on
+    camera/image_raw/compressed, panel_pose for the pose, sim_camera's intrinsics from the calibration file."""
+    from uw_sil.nodes import graph
+
+    specs = {s.name: s for s in graph.forward_graph(bag="/d/t.mcap", sim_params="/d/fit.yaml",
+                                                    image_transport="compressed", pose_source="markers",
+                                                    camera_info_file="/d/cam.yaml")}
+    assert list(specs) == ["sim_camera", "enhancer", "panel_pose", "bag_play"]
+    assert specs["sim_camera"].parameters == {**graph.REPLAY_SIM_CAMERA, "camera_info_file": "/d/cam.yaml"}
+    assert specs["enhancer"].parameters["image_transport"] == "compressed" and specs["enhancer"].required
+    assert specs["panel_pose"].parameters == {"image_transport": "compressed", "camera_info_file": "/d/cam.yaml"}
+    play = specs["bag_play"].parameters
+    assert play["wait_for_topics"] == ["/camera/image_raw/compressed"]       # no /panel/pose in such a bag
+    assert play["wait_for_nodes"] == ["enhancer", "panel_pose"]
+    # a recorded pose topic: bag_play waits for the pose reader too, as before
+    plain = {s.name: s for s in graph.forward_graph(bag="/d/t.mcap", image_transport="compressed")}
+    assert plain["bag_play"].parameters["wait_for_topics"] == ["/camera/image_raw/compressed", "/panel/pose"]
+    assert "panel_pose" not in plain
+    g = graph.GRAPHS["forward"]
+    nodes = {s.name: s for s in g.nodes({"image_transport": "compressed", "pose_source": "markers"})}
+    assert "panel_pose" in nodes and nodes["enhancer"].parameters["image_transport"] == "compressed"
+    with pytest.raises(ValueError, match="image_transport"):
+        g.parse({"image_transport": "theora"})
+
+
 def test_enhancer_renders_only_the_effects_sim_camera_lists():
     import_or_skip("rclpy", reason="ROS 2 Python packages (the `ros` extra) are not installed")
     from uw_sil.nodes.enhancer import _active
