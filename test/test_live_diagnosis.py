@@ -590,3 +590,101 @@ def test_start_or_ctrl_c_stops_a_running_diagnosis(lamp_bag, tmp_path):
         for p in plays:
             p.stop()
         watch.close()
+
+
+@pytest.mark.slow
+def test_uw_sil_launch_sil_diagnose_restores_with_the_extended_model(lamp_bag, tmp_path):
+    """`uw-sil launch sil --diagnose`: the diagnosis re-parameterizes sim_camera and, through its parameter events,
+    the enhancer, which then restores a frame with the extended model (the lamp parameters sim_camera holds)."""
+    _ros()
+    from uw_sil.bags import read_samples
+    from rclpy.qos import DurabilityPolicy, QoSProfile
+    from sensor_msgs.msg import Image
+    from std_msgs.msg import String
+
+    from rosproc import Proc, assert_clean_output, domain_id, logs_on_failure, ros_env
+    from uw_sil.bags.imgmsg import rgb_to_image_fields
+
+    domain = domain_id()
+    args = [sys.executable, "-m", "uw_sil.cli", "launch", "sil", "--bag", str(lamp_bag), "--diagnose",
+            "--keep-running", "--output-yaml", str(tmp_path / "ext.yaml"), "--output-json", str(tmp_path / "diag.json")]
+    for k, v in BUDGET.items():
+        args += ["--" + k.replace("_", "-"), str(v)]
+    watch = Watcher(domain)
+    enh_status, enhanced = [], {}
+    watch.node.create_subscription(String, "/enhancer/status", lambda m: enh_status.append(json.loads(m.data)),
+                                   QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL))
+    watch.node.create_subscription(Image, "/camera/image_enhanced",
+                                   lambda m: enhanced.__setitem__(m.header.stamp.sec * 10**9 + m.header.stamp.nanosec,
+                                                                  m), 10)
+    pub_img = watch.node.create_publisher(Image, "/camera/image_raw", 10)
+    launch = Proc(args, ros_env(domain), name="uw-sil launch sil --diagnose")
+    try:
+        with logs_on_failure(launch):
+            watch.spin_until(lambda: any(t.startswith(("done:", "failed:")) for t in watch.status), 400,
+                             "backward_fit to finish the diagnosis", detail=launch.tail)
+            assert watch.status[-1].startswith("done: diagnosis: artificial_light"), watch.status[-1]
+            held = watch.params(["effects", "artificial_light.power"])
+            assert held["effects"] == "artificial_light"
+            # the enhancer follows sim_camera: its model (on its status) holds the lamps sim_camera holds
+            watch.spin_until(lambda: enh_status and (enh_status[-1].get("model") or {}).get("artificial_light.power")
+                             == pytest.approx(held["artificial_light.power"], rel=1e-12), 30,
+                             "the enhancer's model with sim_camera's artificial_light.power",
+                             detail=lambda: f"enhancer status: {enh_status[-1] if enh_status else None}")
+            # and restores a frame with it: a recorded frame and its pose, published now, come back enhanced
+            samples = list(read_samples(lamp_bag))
+            s = samples[5]
+            # after the bag's stamps: the enhancer pairs by stamp, and a stamp before the newest it saw is stale
+            stamp = max(x.stamp_ns for x in samples) + 10_000_000_000
+            img = Image(**rgb_to_image_fields(s.image))
+            img.header.stamp.sec, img.header.stamp.nanosec = divmod(stamp, 10**9)
+            img.header.frame_id = "camera_optical_frame"
+            watch.spin_until(lambda: pub_img.get_subscription_count() > 0, 30, "the enhancer's camera subscription")
+            deadline = time.monotonic() + 60
+            while stamp not in enhanced:
+                assert time.monotonic() < deadline, f"no camera/image_enhanced for stamp {stamp}"
+                pub_img.publish(img)
+                watch.render_at(s.pose, stamp, timeout=30)
+                watch.spin_until(lambda: stamp in enhanced or time.monotonic() > deadline, 61, "an enhanced frame")
+            out = enhanced[stamp]
+            assert (out.width, out.height, out.encoding) == (SMALL[0], SMALL[1], "rgb8")
+            print(f"uw-sil launch sil --diagnose: enhancer model holds artificial_light.power "
+                  f"{held['artificial_light.power']:.4g}; frame {stamp} enhanced")
+            launch.signal(2)
+            launch.wait_group(60)
+        assert launch.popen.returncode == 0, launch.tail()
+        assert_clean_output(launch.text, "uw-sil launch sil")
+    finally:
+        launch.stop()
+        watch.close()
+
+
+@pytest.mark.slow
+def test_uw_sil_launch_forward_on_a_field_recording(field_bag, tmp_path):
+    """`uw-sil launch forward` on a recording of JPEG images without pose or camera_info: the enhancer reads
+    camera/image_raw/compressed, panel_pose publishes the marker poses, sim_camera takes the calibration file; the
+    graph enhances the frames and ends by itself after the bag."""
+    _ros()
+    from uw_sil.bags.synth import DEFAULT_TRUTH
+    from uw_sil.fit.backward import write_params_yaml
+
+    from rosproc import Proc, assert_clean_output, domain_id, logs_on_failure, ros_env
+
+    bag, cam = field_bag
+    fit = write_params_yaml(tmp_path / "fit.yaml", DEFAULT_TRUTH)
+    args = [sys.executable, "-m", "uw_sil.cli", "launch", "forward", "--bag", str(bag), "--sim-params", str(fit),
+            "--image-transport", "compressed", "--pose-source", "markers", "--camera-info-file", str(cam)]
+    launch = Proc(args, ros_env(domain_id()), name="uw-sil launch forward (compressed, markers)")
+    try:
+        with logs_on_failure(launch):
+            launch.wait_group(300)
+            text = launch.text
+            assert launch.popen.returncode == 0
+            assert "required node enhancer ended" in text and "all nodes ended cleanly" in text
+            assert re.search(r"\[panel_pose\s*\]", text), "panel_pose did not run"
+            done = json.loads(text.split("done; ", 1)[1].splitlines()[0])
+            print(f"uw-sil launch forward (compressed, markers): {done['enhanced']} of 12 frames enhanced; {done}")
+            assert done["enhanced"] >= 9 and done["dropped_bad"] == 0, done
+        assert_clean_output(text, "uw-sil launch forward")
+    finally:
+        launch.stop()
