@@ -142,6 +142,7 @@ def test_forward_graph_reads_compressed_images_markers_and_a_camera_file():
     assert list(specs) == ["sim_camera", "enhancer", "panel_pose", "bag_play"]
     assert specs["sim_camera"].parameters == {**graph.REPLAY_SIM_CAMERA, "camera_info_file": "/d/cam.yaml"}
     assert specs["enhancer"].parameters["image_transport"] == "compressed" and specs["enhancer"].required
+    assert specs["enhancer"].parameters["idle_timeout"] == graph.MARKER_IDLE_TIMEOUT   # the poses come later
     assert specs["panel_pose"].parameters == {"image_transport": "compressed", "camera_info_file": "/d/cam.yaml"}
     play = specs["bag_play"].parameters
     assert play["wait_for_topics"] == ["/camera/image_raw/compressed"]       # no /panel/pose in such a bag
@@ -665,6 +666,9 @@ def test_uw_sil_launch_forward_on_a_field_recording(field_bag, tmp_path):
     camera/image_raw/compressed, panel_pose publishes the marker poses, sim_camera takes the calibration file; the
     graph enhances the frames and ends by itself after the bag."""
     _ros()
+    from uw_sil.bags import read_samples
+    from uw_sil.bags.camera_yaml import load_camera_yaml
+    from uw_sil.bags.source import PoseFrom
     from uw_sil.bags.synth import DEFAULT_TRUTH
     from uw_sil.fit.backward import write_params_yaml
 
@@ -683,8 +687,16 @@ def test_uw_sil_launch_forward_on_a_field_recording(field_bag, tmp_path):
             assert "required node enhancer ended" in text and "all nodes ended cleanly" in text
             assert re.search(r"\[panel_pose\s*\]", text), "panel_pose did not run"
             done = json.loads(text.split("done; ", 1)[1].splitlines()[0])
-            print(f"uw-sil launch forward (compressed, markers): {done['enhanced']} of 12 frames enhanced; {done}")
-            assert done["enhanced"] >= 9 and done["dropped_bad"] == 0, done
+            # every frame on which the markers give a pose offline (the reader of uw-sil fit --pose-from markers)
+            # is enhanced; the others have no pose, so no sim frame to pair with
+            posed = len(list(read_samples(bag, image_topic="/camera/image_raw/compressed", info_topic=None,
+                                          pose_topic=None, pose_from=PoseFrom.parse("markers"),
+                                          calibration=load_camera_yaml(cam))))
+            print(f"uw-sil launch forward (compressed, markers): {done['enhanced']} of 12 frames enhanced, "
+                  f"{posed} with a marker pose offline")
+            assert posed >= 6, posed
+            assert done["enhanced"] == posed and done["dropped_unpaired"] == 12 - posed, done
+            assert done["dropped_bad"] == 0 and done["dropped_queue"] == 0, done
         assert_clean_output(text, "uw-sil launch forward")
     finally:
         launch.stop()

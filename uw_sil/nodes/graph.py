@@ -149,12 +149,19 @@ def backward_graph(sim_params: Optional[str] = None, bag: Optional[str] = None, 
 REPLAY_SIM_CAMERA = {"queue_size": 100}
 
 
-def _enhancer(method: str, b_from_frame: bool, idle_exit: bool, image_transport: str = "raw") -> NodeSpec:
+#: With poses from the markers, seconds without input after which the enhancer of a replay ends: panel_pose sends
+#: the poses later than the images arrive (its first frame took 4.3 s on the loaded 2-core machine: the renderer
+#: of its refinement starts), so IDLE_TIMEOUT after the last image ended the graph before any frame was paired.
+MARKER_IDLE_TIMEOUT = 15.0
+
+
+def _enhancer(method: str, b_from_frame: bool, idle_exit: bool, image_transport: str = "raw",
+              idle_timeout: float = IDLE_TIMEOUT) -> NodeSpec:
     params = {"method": method, "b_from_frame": bool(b_from_frame), "sim_node": "sim_camera"}
     if image_transport != "raw":
         params["image_transport"] = image_transport
     if idle_exit:
-        params["idle_timeout"] = IDLE_TIMEOUT
+        params["idle_timeout"] = idle_timeout
     return NodeSpec("enhancer", "enhancer", parameters=params, required=idle_exit)
 
 
@@ -193,7 +200,8 @@ def forward_graph(sim_params: Optional[str] = None, bag: Optional[str] = None, r
     if camera_info_file:
         sim["camera_info_file"] = str(camera_info_file)
     nodes = [NodeSpec("sim_camera", "sim_camera", param_files=[sim_params], parameters=sim),
-             _enhancer(method, b_from_frame, idle_exit, image_transport=image_transport)]
+             _enhancer(method, b_from_frame, idle_exit, image_transport=image_transport,
+                       idle_timeout=MARKER_IDLE_TIMEOUT if marker_node is not None else IDLE_TIMEOUT)]
     if marker_node is not None:
         nodes.append(marker_node)
     if bag:
