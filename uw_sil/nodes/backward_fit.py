@@ -19,10 +19,13 @@ accepted effect with its parameters as key/values, OK for one not needed, ERROR 
 the extended model (base, ``noise_sigma``, ``effects`` and every accepted ``<effect>.<param>``) sent atomically
 to ``sim_node`` (which must be started with ``extensible_effects`` to take new effects) and written to
 ``output_yaml`` (the file of ``uw-sil diagnose --params-out``) and ``output_json``. ``~/start`` during a
-diagnosis stops it (nothing written or sent) and starts a new collection; so does Ctrl-C (without the new one).
+diagnosis answers at once, stops it at its next optimizer iteration or step (nothing written or sent; then
+``stopped: ...`` on ``~/status``) and starts a new collection, paired afresh (a bag replayed again starts at its
+first stamp). Ctrl-C stops it too: the node waits ``STOP_WAIT`` s for it, and one inside a step without an
+interrupt check (a least-squares stage) ends with the process; nothing is written either way.
 
 Publishes ``~/status`` (std_msgs/String, transient local: ``collecting ...``, ``fitting ...``, then
-``done: ...`` or ``failed: ...``; with ``diagnose`` also ``diagnosing: <step>``) and ``~/theta``
+``done: ...`` or ``failed: ...``; with ``diagnose`` also ``diagnosing: <step>`` and ``stopped: ...``) and ``~/theta``
 (std_msgs/Float64, best θ per iteration of the plain fit). Service
 ``~/start`` (std_srvs/Trigger) starts a new collection and fit (answered ``success: false`` with the
 reason when a fit is running or the parameters do not make a valid selection).
