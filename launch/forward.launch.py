@@ -1,6 +1,7 @@
 """ros2 launch uw_sil forward.launch.py [sim_params:=fit.yaml] [bag:=trial.mcap] [method:=sil|dcp|udcp]
                                         [b_from_frame:=false] [rate:=1.0] [loop:=false] [keep_running:=false]
-                                        [start_paused:=false]
+                                        [start_paused:=false] [image_transport:=raw|compressed]
+                                        [pose_source:=topic|markers] [camera_info_file:=camera.yaml]
 
 The forward half: sim_camera renders the panel at each pose with the fitted parameters (sim_params) and
 the enhancer publishes camera/image_enhanced, the real frames dehazed with the synced simulated depth

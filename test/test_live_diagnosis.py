@@ -131,6 +131,33 @@ def test_graphs_with_diagnose_compressed_images_markers_and_a_camera_file():
         g.parse({"pose_source": "gps"})
 
 
+def test_forward_graph_reads_compressed_images_markers_and_a_camera_file():
+    """The forward graph takes a field recording as the backward graph does: the enhancer on
+    camera/image_raw/compressed, panel_pose for the pose, sim_camera's intrinsics from the calibration file."""
+    from uw_sil.nodes import graph
+
+    specs = {s.name: s for s in graph.forward_graph(bag="/d/t.mcap", sim_params="/d/fit.yaml",
+                                                    image_transport="compressed", pose_source="markers",
+                                                    camera_info_file="/d/cam.yaml")}
+    assert list(specs) == ["sim_camera", "enhancer", "panel_pose", "bag_play"]
+    assert specs["sim_camera"].parameters == {**graph.REPLAY_SIM_CAMERA, "camera_info_file": "/d/cam.yaml"}
+    assert specs["enhancer"].parameters["image_transport"] == "compressed" and specs["enhancer"].required
+    assert specs["enhancer"].parameters["idle_timeout"] == graph.MARKER_IDLE_TIMEOUT   # the poses come later
+    assert specs["panel_pose"].parameters == {"image_transport": "compressed", "camera_info_file": "/d/cam.yaml"}
+    play = specs["bag_play"].parameters
+    assert play["wait_for_topics"] == ["/camera/image_raw/compressed"]       # no /panel/pose in such a bag
+    assert play["wait_for_nodes"] == ["enhancer", "panel_pose"]
+    # a recorded pose topic: bag_play waits for the pose reader too, as before
+    plain = {s.name: s for s in graph.forward_graph(bag="/d/t.mcap", image_transport="compressed")}
+    assert plain["bag_play"].parameters["wait_for_topics"] == ["/camera/image_raw/compressed", "/panel/pose"]
+    assert "panel_pose" not in plain
+    g = graph.GRAPHS["forward"]
+    nodes = {s.name: s for s in g.nodes({"image_transport": "compressed", "pose_source": "markers"})}
+    assert "panel_pose" in nodes and nodes["enhancer"].parameters["image_transport"] == "compressed"
+    with pytest.raises(ValueError, match="image_transport"):
+        g.parse({"image_transport": "theora"})
+
+
 def test_enhancer_renders_only_the_effects_sim_camera_lists():
     import_or_skip("rclpy", reason="ROS 2 Python packages (the `ros` extra) are not installed")
     from uw_sil.nodes.enhancer import _active
@@ -236,13 +263,18 @@ class Watcher:
         self.node = Node("watcher", context=self.ctx)
         latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL)
         self.status, self.diagnosis, self.diagnostics, self.frames = [], [], [], {}
-        self.node.create_subscription(String, "/backward_fit/status", lambda m: self.status.append(m.data), latched)
+        # depth 10: the statuses that follow one another quickly (stopping, stopped) are all kept
+        self.node.create_subscription(String, "/backward_fit/status", lambda m: self.status.append(m.data),
+                                      QoSProfile(depth=10, durability=DurabilityPolicy.TRANSIENT_LOCAL))
         self.node.create_subscription(String, "/backward_fit/diagnosis", lambda m: self.diagnosis.append(m.data),
                                       latched)
         self.node.create_subscription(DiagnosticArray, "/diagnostics", self.diagnostics.append, 10)
         self.node.create_subscription(Image, "/sim/image_raw", self._on_frame, qos_profile_sensor_data)
         self.pose_pub = self.node.create_publisher(PoseStamped, "/panel/pose", 10)
         self.sim_params = AsyncParameterClient(self.node, "/sim_camera")
+        from std_srvs.srv import Trigger
+
+        self.start = self.node.create_client(Trigger, "/backward_fit/start")
         self.ex = SingleThreadedExecutor(context=self.ctx)
         self.ex.add_node(self.node)
 
@@ -253,6 +285,31 @@ class Watcher:
         from rosproc import spin_until
 
         spin_until(self.ex, cond, timeout=timeout, what=what, detail=detail)
+
+    def call_start(self, timeout: float = 30.0):
+        """~/start of backward_fit, answered (the Trigger response)."""
+        from std_srvs.srv import Trigger
+
+        from rosproc import wait_future
+
+        self.spin_until(self.start.service_is_ready, timeout, "backward_fit's ~/start service")
+        return wait_future(self.ex, self.start.call_async(Trigger.Request()), timeout=timeout,
+                           what="the answer of backward_fit's ~/start")
+
+    def wait_status(self, prefix: str, timeout: float, since: int = 0, proc=None) -> tuple:
+        """(index, text) of the first status from ``since`` on that starts with ``prefix``; AssertionError at once
+        when ``proc`` (backward_fit's Proc) has ended."""
+        def found():
+            return next(((i, t) for i, t in enumerate(self.status[since:], since) if t.startswith(prefix)), None)
+
+        def ended():
+            return proc is not None and proc.popen.poll() is not None
+
+        what = f"a backward_fit status starting with {prefix!r}"
+        self.spin_until(lambda: found() is not None or ended(), timeout, what,
+                        detail=lambda: f"statuses received: {self.status}")
+        assert found() is not None, f"{proc and proc.name} ended while waiting for {what}; statuses: {self.status}"
+        return found()
 
     def params(self, names) -> dict:
         from rosproc import wait_future
@@ -462,3 +519,184 @@ def test_ros2_launch_backward_diagnose_on_a_field_recording(ws, field_bag, tmp_p
     finally:
         launch.stop()
         watch.close()
+
+
+#: Seconds within which a running diagnosis must have stopped after ~/start: it stops at its next optimizer iteration
+#: or step (3-4 s on the loaded 2-core machine); a least-squares stage between two of them is not interruptible.
+STOP_DEADLINE = 20.0
+#: Seconds within which backward_fit must have ended after Ctrl-C (it waits backward_fit.STOP_WAIT for the diagnosis).
+EXIT_DEADLINE = 10.0
+
+
+@pytest.mark.slow
+def test_start_or_ctrl_c_stops_a_running_diagnosis(lamp_bag, tmp_path):
+    """A diagnosis is stopped by ~/start (the node answers at once, the diagnosis ends within STOP_DEADLINE, its
+    status says so, nothing is written or published, and the new collection diagnoses the next replay), then the
+    new diagnosis by Ctrl-C (the node exits with 0 within STOP_DEADLINE, says it stopped, writes nothing)."""
+    _ros()
+    from uw_sil.nodes import graph
+
+    from rosproc import Proc, assert_clean_output, domain_id, logs_on_failure, ros_env
+
+    out_yaml, out_json = tmp_path / "ext.yaml", tmp_path / "diag.json"
+    budget = {k: v for k, v in BUDGET.items() if k != "max_iter"}   # the diagnosis' own budget: it runs long enough
+    specs = {s.name: s for s in graph.backward_graph(bag=str(lamp_bag), diagnose=True, keep_running=True,
+                                                     output_yaml=str(out_yaml), output_json=str(out_json),
+                                                     **budget)}
+    domain = domain_id()
+    env = ros_env(domain)
+    watch = Watcher(domain)
+    fit = Proc(graph.command_line(specs["backward_fit"]), env, name="backward_fit")
+    plays = [Proc(graph.command_line(specs["bag_play"]), env, name="bag_play (first replay)")]
+
+    def nothing_out(when: str):
+        assert not list(tmp_path.iterdir()), f"{when}: written (or left partly written): {list(tmp_path.iterdir())}"
+        assert not watch.diagnosis and not watch.diagnostics, f"{when}: a diagnosis was published"
+
+    try:
+        with logs_on_failure(fit, plays):
+            # 1. ~/start during the base fit of the diagnosis
+            i, _ = watch.wait_status("diagnosing: base fit", 400, proc=fit)
+            t_ask = time.monotonic()
+            resp = watch.call_start()
+            t_answer = time.monotonic()
+            assert resp.success and resp.message.startswith("stopping the running diagnosis"), resp.message
+            j, stopped = watch.wait_status("stopped: the diagnosis, by ~/start", STOP_DEADLINE, since=i, proc=fit)
+            t_stopped = time.monotonic()
+            assert "nothing written or sent" in stopped, stopped
+            print(f"~/start: answered in {t_answer - t_ask:.2f} s; the diagnosis stopped {t_stopped - t_ask:.2f} s "
+                  f"after the call ({stopped})")
+            # the new collection takes the next replay and diagnoses it from the start
+            plays.append(Proc(graph.command_line(specs["bag_play"]), env, name="bag_play (second replay)"))
+            k, _ = watch.wait_status("diagnosing 6 frames", 400, since=j, proc=fit)
+            assert not [t for t in watch.status[j + 1:k] if t.startswith("diagnosing")], watch.status
+            nothing_out("after ~/start")
+            # 2. Ctrl-C during the first candidate's refit
+            watch.wait_status("diagnosing: round 1: refitting", 600, since=k, proc=fit)
+            t_sig = time.monotonic()
+            fit.signal(2)
+            fit.wait_group(EXIT_DEADLINE)
+            assert fit.popen.returncode == 0, fit.tail()
+            assert "stopping the running diagnosis: nothing will be written or sent" in fit.text, fit.tail()
+            # the diagnosis stopped at its next iteration, or (inside a least-squares stage) ended with the process
+            how = re.search(r"stopped: the diagnosis, by the node's shutdown.*nothing written or sent|"
+                            r"the diagnosis did not stop within .* it ends with the process, nothing written", fit.text)
+            assert how, fit.tail()
+            print(f"Ctrl-C: backward_fit ended {time.monotonic() - t_sig:.2f} s after SIGINT; {how.group(0)}")
+            assert_clean_output(fit.text, "backward_fit")
+            assert "Failed to publish" not in fit.text, fit.tail()
+            nothing_out("after Ctrl-C")
+    finally:
+        fit.stop()
+        for p in plays:
+            p.stop()
+        watch.close()
+
+
+@pytest.mark.slow
+def test_uw_sil_launch_sil_diagnose_restores_with_the_extended_model(lamp_bag, tmp_path):
+    """`uw-sil launch sil --diagnose`: the diagnosis re-parameterizes sim_camera and, through its parameter events,
+    the enhancer, which then restores a frame with the extended model (the lamp parameters sim_camera holds)."""
+    _ros()
+    from uw_sil.bags import read_samples
+    from rclpy.qos import DurabilityPolicy, QoSProfile
+    from sensor_msgs.msg import Image
+    from std_msgs.msg import String
+
+    from rosproc import Proc, assert_clean_output, domain_id, logs_on_failure, ros_env
+    from uw_sil.bags.imgmsg import rgb_to_image_fields
+
+    domain = domain_id()
+    args = [sys.executable, "-m", "uw_sil.cli", "launch", "sil", "--bag", str(lamp_bag), "--diagnose",
+            "--keep-running", "--output-yaml", str(tmp_path / "ext.yaml"), "--output-json", str(tmp_path / "diag.json")]
+    for k, v in BUDGET.items():
+        args += ["--" + k.replace("_", "-"), str(v)]
+    watch = Watcher(domain)
+    enh_status, enhanced = [], {}
+    watch.node.create_subscription(String, "/enhancer/status", lambda m: enh_status.append(json.loads(m.data)),
+                                   QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL))
+    watch.node.create_subscription(Image, "/camera/image_enhanced",
+                                   lambda m: enhanced.__setitem__(m.header.stamp.sec * 10**9 + m.header.stamp.nanosec,
+                                                                  m), 10)
+    pub_img = watch.node.create_publisher(Image, "/camera/image_raw", 10)
+    launch = Proc(args, ros_env(domain), name="uw-sil launch sil --diagnose")
+    try:
+        with logs_on_failure(launch):
+            watch.spin_until(lambda: any(t.startswith(("done:", "failed:")) for t in watch.status), 400,
+                             "backward_fit to finish the diagnosis", detail=launch.tail)
+            assert watch.status[-1].startswith("done: diagnosis: artificial_light"), watch.status[-1]
+            held = watch.params(["effects", "artificial_light.power"])
+            assert held["effects"] == "artificial_light"
+            # the enhancer follows sim_camera: its model (on its status) holds the lamps sim_camera holds
+            watch.spin_until(lambda: enh_status and (enh_status[-1].get("model") or {}).get("artificial_light.power")
+                             == pytest.approx(held["artificial_light.power"], rel=1e-12), 30,
+                             "the enhancer's model with sim_camera's artificial_light.power",
+                             detail=lambda: f"enhancer status: {enh_status[-1] if enh_status else None}")
+            # and restores a frame with it: a recorded frame and its pose, published now, come back enhanced
+            samples = list(read_samples(lamp_bag))
+            s = samples[5]
+            # after the bag's stamps: the enhancer pairs by stamp, and a stamp before the newest it saw is stale
+            stamp = max(x.stamp_ns for x in samples) + 10_000_000_000
+            img = Image(**rgb_to_image_fields(s.image))
+            img.header.stamp.sec, img.header.stamp.nanosec = divmod(stamp, 10**9)
+            img.header.frame_id = "camera_optical_frame"
+            watch.spin_until(lambda: pub_img.get_subscription_count() > 0, 30, "the enhancer's camera subscription")
+            deadline = time.monotonic() + 60
+            while stamp not in enhanced:
+                assert time.monotonic() < deadline, f"no camera/image_enhanced for stamp {stamp}"
+                pub_img.publish(img)
+                watch.render_at(s.pose, stamp, timeout=30)
+                watch.spin_until(lambda: stamp in enhanced or time.monotonic() > deadline, 61, "an enhanced frame")
+            out = enhanced[stamp]
+            assert (out.width, out.height, out.encoding) == (SMALL[0], SMALL[1], "rgb8")
+            print(f"uw-sil launch sil --diagnose: enhancer model holds artificial_light.power "
+                  f"{held['artificial_light.power']:.4g}; frame {stamp} enhanced")
+            launch.signal(2)
+            launch.wait_group(60)
+        assert launch.popen.returncode == 0, launch.tail()
+        assert_clean_output(launch.text, "uw-sil launch sil")
+    finally:
+        launch.stop()
+        watch.close()
+
+
+@pytest.mark.slow
+def test_uw_sil_launch_forward_on_a_field_recording(field_bag, tmp_path):
+    """`uw-sil launch forward` on a recording of JPEG images without pose or camera_info: the enhancer reads
+    camera/image_raw/compressed, panel_pose publishes the marker poses, sim_camera takes the calibration file; the
+    graph enhances the frames and ends by itself after the bag."""
+    _ros()
+    from uw_sil.bags import read_samples
+    from uw_sil.bags.camera_yaml import load_camera_yaml
+    from uw_sil.bags.source import PoseFrom
+    from uw_sil.bags.synth import DEFAULT_TRUTH
+    from uw_sil.fit.backward import write_params_yaml
+
+    from rosproc import Proc, assert_clean_output, domain_id, logs_on_failure, ros_env
+
+    bag, cam = field_bag
+    fit = write_params_yaml(tmp_path / "fit.yaml", DEFAULT_TRUTH)
+    args = [sys.executable, "-m", "uw_sil.cli", "launch", "forward", "--bag", str(bag), "--sim-params", str(fit),
+            "--image-transport", "compressed", "--pose-source", "markers", "--camera-info-file", str(cam)]
+    launch = Proc(args, ros_env(domain_id()), name="uw-sil launch forward (compressed, markers)")
+    try:
+        with logs_on_failure(launch):
+            launch.wait_group(300)
+            text = launch.text
+            assert launch.popen.returncode == 0
+            assert "required node enhancer ended" in text and "all nodes ended cleanly" in text
+            assert re.search(r"\[panel_pose\s*\]", text), "panel_pose did not run"
+            done = json.loads(text.split("done; ", 1)[1].splitlines()[0])
+            # every frame on which the markers give a pose offline (the reader of uw-sil fit --pose-from markers)
+            # is enhanced; the others have no pose, so no sim frame to pair with
+            posed = len(list(read_samples(bag, image_topic="/camera/image_raw/compressed", info_topic=None,
+                                          pose_topic=None, pose_from=PoseFrom.parse("markers"),
+                                          calibration=load_camera_yaml(cam))))
+            print(f"uw-sil launch forward (compressed, markers): {done['enhanced']} of 12 frames enhanced, "
+                  f"{posed} with a marker pose offline")
+            assert posed >= 6, posed
+            assert done["enhanced"] == posed and done["dropped_unpaired"] == 12 - posed, done
+            assert done["dropped_bad"] == 0 and done["dropped_queue"] == 0, done
+        assert_clean_output(text, "uw-sil launch forward")
+    finally:
+        launch.stop()

@@ -19,10 +19,13 @@ accepted effect with its parameters as key/values, OK for one not needed, ERROR 
 the extended model (base, ``noise_sigma``, ``effects`` and every accepted ``<effect>.<param>``) sent atomically
 to ``sim_node`` (which must be started with ``extensible_effects`` to take new effects) and written to
 ``output_yaml`` (the file of ``uw-sil diagnose --params-out``) and ``output_json``. ``~/start`` during a
-diagnosis stops it (nothing written or sent) and starts a new collection; so does Ctrl-C (without the new one).
+diagnosis answers at once, stops it at its next optimizer iteration or step (nothing written or sent; then
+``stopped: ...`` on ``~/status``) and starts a new collection, paired afresh (a bag replayed again starts at its
+first stamp). Ctrl-C stops it too: the node waits ``STOP_WAIT`` s for it, and one inside a step without an
+interrupt check (a least-squares stage) ends with the process; nothing is written either way.
 
 Publishes ``~/status`` (std_msgs/String, transient local: ``collecting ...``, ``fitting ...``, then
-``done: ...`` or ``failed: ...``; with ``diagnose`` also ``diagnosing: <step>``) and ``~/theta``
+``done: ...`` or ``failed: ...``; with ``diagnose`` also ``diagnosing: <step>`` and ``stopped: ...``) and ``~/theta``
 (std_msgs/Float64, best θ per iteration of the plain fit). Service
 ``~/start`` (std_srvs/Trigger) starts a new collection and fit (answered ``success: false`` with the
 reason when a fit is running or the parameters do not make a valid selection).
@@ -80,6 +83,10 @@ from . import camera_from_file, executor_for, run_node
 
 #: ``image_transport`` values: the camera topic and message type of each (image_transport's naming).
 TRANSPORTS = {"raw": ("camera/image_raw", Image), "compressed": ("camera/image_raw/compressed", CompressedImage)}
+
+
+#: Seconds a shutdown waits for a running fit or diagnosis to stop (at its next optimizer iteration).
+STOP_WAIT = 3.0
 
 
 class _Cancelled(Exception):
@@ -198,6 +205,7 @@ class BackwardFitNode(Node):
         self.pub_diagnosis = self.create_publisher(String, "~/diagnosis", latched)
         self.pub_diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self._run_cancel = threading.Event()   # the running diagnosis' own: set by ~/start for a new one
+        self._stop_asked = None                # monotonic time a stop of the running diagnosis was asked
         self._sent_effects = False             # whether this node has set sim_node's effects
         camera_file = self.get_parameter("camera_info_file").value
         self.camera = camera_from_file(camera_file) if camera_file else None
@@ -213,10 +221,9 @@ class BackwardFitNode(Node):
         self.finished = Future()   # result: True when done, False when failed (for exit_when_done)
         # streams: 0 image (primary), 1 camera_info (any age: often latched or slow), 2 pose (max_dt); with
         # camera_info_file: 0 image, 1 pose
-        max_dt = self.get_parameter("max_dt").value
         self._pose_stream = 2 if self.camera is None else 1
-        self.sync = (StampSynchronizer(3, max_dt=[None, max_dt]) if self.camera is None
-                     else StampSynchronizer(2, max_dt=[max_dt]))
+        self._last_info = None       # (stamp, message) of the newest camera_info
+        self.sync = self._new_sync()
         # Sensor-data QoS (best effort: matches any camera driver), but a deeper queue than its 5: frame
         # selection renders in the callback, and the first frames of a dive should not be dropped. A
         # replayed bag is played reliably and read reliably: under load best effort lost frames, and the
@@ -244,6 +251,18 @@ class BackwardFitNode(Node):
         else:
             self._status("idle: call ~/start to fit")
 
+    def _new_sync(self) -> StampSynchronizer:
+        """The pairing of a new collection: it pairs the messages that arrive from now on (a bag replayed again
+        starts over at its first stamp, which the previous collection's pairing took for stale), and the newest
+        camera_info (a camera that sends it once, or slowly)."""
+        max_dt = self.get_parameter("max_dt").value
+        if self.camera is not None:
+            return StampSynchronizer(2, max_dt=[max_dt])
+        sync = StampSynchronizer(3, max_dt=[None, max_dt])
+        if self._last_info is not None:
+            sync.add(1, *self._last_info)
+        return sync
+
     def _on_set_parameters(self, params) -> SetParametersResult:
         for p in params:
             reason = _check(p.name, p.value)
@@ -251,8 +270,17 @@ class BackwardFitNode(Node):
                 return SetParametersResult(successful=False, reason=reason)
         return SetParametersResult(successful=True)
 
+    def _log(self):
+        """The node's logger; once the context is shut down (Ctrl-C), a child logger that does not try rosout
+        (the node's own printed "Failed to publish log message to rosout" after each line)."""
+        if self.context.ok():
+            return self.get_logger()
+        import rclpy.logging
+
+        return rclpy.logging.get_logger(f"{self.get_name()}.stop")
+
     def _status(self, text: str):
-        self.get_logger().info(text)
+        self._log().info(text)
         if self.context.ok():   # the fit thread may report after Ctrl-C
             self.pub_status.publish(String(data=text))
 
@@ -262,15 +290,18 @@ class BackwardFitNode(Node):
             self.finished.set_result(ok)
 
     def _start(self) -> tuple:
-        """Start a new collection; (True, '') or (False, why not)."""
+        """Start a new collection; (True, what it does) or (False, why not)."""
         stopped = ""
         with self._lock:
             running = self.fit_thread is not None and self.fit_thread.is_alive()
             if running and not self._diagnosing:
                 return False, "a fit is running"
-            if running:   # a diagnosis: stop it (at its next optimizer iteration; nothing written or sent)
+            if running and not self._run_cancel.is_set():
+                # a diagnosis: stop it (at its next optimizer iteration; nothing written or sent); its thread
+                # says when it has stopped (status "stopped: ...")
+                self._stop_asked = time.monotonic()
                 self._run_cancel.set()
-                stopped = "stopped the running diagnosis (nothing written or sent); "
+                stopped = "stopping the running diagnosis (nothing will be written or sent); "
             g = lambda n: self.get_parameter(n).value  # noqa: E731
             try:
                 if g("diagnose"):
@@ -282,13 +313,15 @@ class BackwardFitNode(Node):
             except ValueError as e:   # the parameters are checked when set: this is a safety net
                 return False, str(e)
             self.selector = selector
+            self.sync = self._new_sync()
             self._collect_start, self._last_input = time.monotonic(), None
         if isinstance(selector, SpreadCollector):
-            self._status(f"{stopped}collecting frames for the diagnosis ({selector.k} of them, spread over those "
-                         f"received until the input pauses or {selector.max_scan} came)")
+            text = (f"{stopped}collecting frames for the diagnosis ({selector.k} of them, spread over those "
+                    f"received until the input pauses or {selector.max_scan} came)")
         else:
-            self._status(f"{stopped}collecting {selector.k} frames with the panel in view")
-        return True, ""
+            text = f"{stopped}collecting {selector.k} frames with the panel in view"
+        self._status(text)
+        return True, f"{stopped}collecting frames"
 
     def _log_progress(self):
         sel, st = self.selector, self.sync.stats
@@ -336,14 +369,16 @@ class BackwardFitNode(Node):
             self._fit_selection(sel)
 
     def _on_start(self, _req, resp):
-        resp.success, reason = self._start()
-        resp.message = "collecting frames" if resp.success else reason
+        resp.success, resp.message = self._start()
         return resp
 
     def _add(self, stream: int, msg):
         if self.selector is not None:
             self._last_input = time.monotonic()
-        for match in self.sync.add(stream, _stamp_ns(msg.header), msg):
+        stamp = _stamp_ns(msg.header)
+        if stream == 1 and self.camera is None:
+            self._last_info = (stamp, msg)
+        for match in self.sync.add(stream, stamp, msg):
             self._offer(match)
 
     def _offer(self, match):
@@ -489,8 +524,7 @@ class BackwardFitNode(Node):
         try:
             self._diagnose_and_apply(frames, options, cancel)
         except _Cancelled:
-            if self.context.ok() and not self._stopping.is_set():
-                self.get_logger().info("diagnosis stopped for a new collection: nothing written or sent")
+            self._report_stopped(options)
         except Exception as e:
             if not self.context.ok() or self._stopping.is_set():
                 return
@@ -552,6 +586,21 @@ class BackwardFitNode(Node):
                                    f"last input message, {after - g('t_collected'):.1f} s after the collection ended")
         self._send_parameters(values, summary, g("sim_node"), on_done=done, what="extended model")
 
+    def _report_stopped(self, options: dict):
+        """The diagnosis thread ended on a stop request (~/start, Ctrl-C): say so, on ~/status while the node runs."""
+        asked = self._stop_asked
+        after = f"{time.monotonic() - asked:.1f} s after it was asked, " if asked is not None else ""
+        ran = time.monotonic() - options["t_collected"]
+        if self._stopping.is_set() or not self.context.ok():
+            text = f"stopped: the diagnosis, by the node's shutdown, {after}after {ran:.0f} s; nothing written or sent"
+        else:
+            text = (f"stopped: the diagnosis, by ~/start, {after}after {ran:.0f} s; nothing written or sent; "
+                    "collecting frames for the new one")
+        try:
+            self._status(text)
+        except Exception:   # the node's handles are gone (the shutdown went on without this thread)
+            pass
+
     def _publish_statuses(self, statuses: list):
         levels = {"OK": DiagnosticStatus.OK, "WARN": DiagnosticStatus.WARN, "ERROR": DiagnosticStatus.ERROR}
         msg = DiagnosticArray()
@@ -570,10 +619,18 @@ class BackwardFitNode(Node):
         # The fit thread first: it uses the node's publishers and parameter client (stopping it ends the
         # optimizer at its next iteration; a fit interrupted so is not written anywhere).
         stopping, thread = getattr(self, "_stopping", None), getattr(self, "fit_thread", None)
+        alive = thread is not None and thread.is_alive() and thread is not threading.current_thread()
+        if alive and self._diagnosing and not self._run_cancel.is_set():
+            self._stop_asked = time.monotonic()
+            self._log().info("stopping the running diagnosis: nothing will be written or sent")
         if stopping is not None:
             stopping.set()
-        if thread is not None and thread is not threading.current_thread():
-            thread.join(timeout=3.0)
+        if alive:
+            thread.join(timeout=STOP_WAIT)
+            if thread.is_alive():
+                self._log().warning(f"the {'diagnosis' if self._diagnosing else 'fit'} did not stop within "
+                                       f"{STOP_WAIT:g} s (it is in a step that cannot be interrupted): it ends with the "
+                                       "process, nothing written or sent")
         # Also for a node whose constructor was interrupted (Ctrl-C while the renderer starts): rclpy
         # destroys the nodes of a context at shutdown, built or not.
         if getattr(self, "renderer", None) is not None:

@@ -33,7 +33,8 @@ Parameters
     background on each frame from its water), ``max_gain`` (lamp-effect gain cap, live); read-only:
     ``sim_node`` (sim_camera), ``sim_pose_topic`` (panel/pose), ``max_dt`` (0.05 s), ``queue_size`` (2),
     ``pair_queue_size`` (30 images waiting for their sim frame), ``erode_px`` (8), ``idle_timeout`` (0 = run
-    until stopped; > 0: exit once no frame has come for that many seconds and the queue is empty: the end of a
+    until stopped; > 0: exit once no input message (camera image or sim frame: with poses from ``panel_pose`` the
+    sim frames come later than the images) has come for that many seconds and the queue is empty: the end of a
     replayed bag), ``image_transport`` (raw | compressed).
 """
 from __future__ import annotations
@@ -145,8 +146,9 @@ class EnhancerNode(Node):
                                                        **ro))
         self.declare_parameter("erode_px", 8, d(description="erosion of the sim water mask for b_from_frame [px]",
                                                 integer_range=[IntegerRange(from_value=0, to_value=100)], **ro))
-        self.declare_parameter("idle_timeout", 0.0, d(description="> 0: exit after this many seconds without a "
-                                                                  "frame (end of a replayed bag)", **ro))
+        self.declare_parameter("idle_timeout", 0.0, d(description="> 0: exit after this many seconds without an "
+                                                                  "input message, camera image or sim frame (end of "
+                                                                  "a replayed bag)", **ro))
         self.declare_parameter("image_transport", "raw", d(
             description="camera input: raw (sensor_msgs/Image on camera/image_raw) or compressed (sensor_msgs/"
                         "CompressedImage, JPEG/PNG, on camera/image_raw/compressed)",
@@ -172,6 +174,7 @@ class EnhancerNode(Node):
         self.last = {}
         self.finished = Future()
         self._last_image = None
+        self._last_input = None     # any input message: the sim frames of poses still coming (panel_pose) count
         self._never_paired_warned = False
         self._unpaired_run = 0
         self._dropped_seen = 0
@@ -314,6 +317,7 @@ class EnhancerNode(Node):
     def _add(self, stream: int, msg):
         now = time.monotonic()
         stamp = _stamp_ns(msg.header)
+        self._last_input = now
         if stream == 0:
             self._last_image = now
             self._recent["image"].append(stamp)
@@ -450,12 +454,12 @@ class EnhancerNode(Node):
             return
         with self._cv:
             idle = not self._queue and not self._busy
-        if not idle or time.monotonic() - self._last_image < self.get_parameter("idle_timeout").value:
+        if not idle or time.monotonic() - self._last_input < self.get_parameter("idle_timeout").value:
             return
         if self.sync.pending:                       # the input has ended: decide what waits for partners
             self._decided(self.sync.flush())
             return
-        self.get_logger().info(f"no frame for {self.get_parameter('idle_timeout').value:g} s: done; "
+        self.get_logger().info(f"no input for {self.get_parameter('idle_timeout').value:g} s: done; "
                                f"{json.dumps(self.status())}")
         self._publish_status()
         self.finished.set_result(True)

@@ -148,16 +148,20 @@ def backward_graph(sim_params: Optional[str] = None, bag: Optional[str] = None, 
 #: default queue of 1, the newest pose, for latency).
 REPLAY_SIM_CAMERA = {"queue_size": 100}
 
-#: Topic the enhancer subscribes to once sim_camera listens for poses: a replayed bag waits for it.
-FORWARD_INPUT = "/camera/image_raw"
+
+#: With poses from the markers, seconds without input after which the enhancer of a replay ends: panel_pose sends
+#: the poses later than the images arrive (its first frame took 4.3 s on the loaded 2-core machine: the renderer
+#: of its refinement starts), so IDLE_TIMEOUT after the last image ended the graph before any frame was paired.
+MARKER_IDLE_TIMEOUT = 15.0
 
 
-def _enhancer(method: str, b_from_frame: bool, idle_exit: bool, image_transport: str = "raw") -> NodeSpec:
+def _enhancer(method: str, b_from_frame: bool, idle_exit: bool, image_transport: str = "raw",
+              idle_timeout: float = IDLE_TIMEOUT) -> NodeSpec:
     params = {"method": method, "b_from_frame": bool(b_from_frame), "sim_node": "sim_camera"}
     if image_transport != "raw":
         params["image_transport"] = image_transport
     if idle_exit:
-        params["idle_timeout"] = IDLE_TIMEOUT
+        params["idle_timeout"] = idle_timeout
     return NodeSpec("enhancer", "enhancer", parameters=params, required=idle_exit)
 
 
@@ -173,7 +177,8 @@ def _bag_play(bag, rate, loop, wait_for_topics, wait_for_nodes=(), start_paused=
 
 def forward_graph(sim_params: Optional[str] = None, bag: Optional[str] = None, rate: float = 1.0, loop: bool = False,
                   keep_running: bool = False, method: str = "sil", b_from_frame: bool = False,
-                  start_paused: bool = False) -> list:
+                  start_paused: bool = False, image_transport: str = "raw", pose_source: str = "topic",
+                  camera_info_file: str = "") -> list:
     """sim_camera + enhancer (+ bag_play replaying a field trial when ``bag`` is given): the forward half.
 
     ``sim_params`` is the fitted parameters file (``uw-sil fit --out fit.yaml``; default
@@ -183,16 +188,33 @@ def forward_graph(sim_params: Optional[str] = None, bag: Optional[str] = None, r
     enhancer and sim_camera (the enhancer subscribes once it has sim_camera's parameters), so no frame is
     lost to start-up. With ``start_paused`` the replay waits for ``bag_play``'s ``~/resume``: time for a
     recorder or viewer of ``camera/image_enhanced`` to match the enhancer, which the graph cannot wait for.
+
+    ``image_transport``, ``pose_source`` and ``camera_info_file`` as in :func:`backward_graph`: the enhancer reads
+    ``camera/image_raw/compressed``, ``panel_pose`` publishes the pose from the panel's markers, sim_camera takes
+    its intrinsics from the calibration file.
     """
     sim_params = sim_params or str(share_file("config", "sim_camera.yaml"))
     idle_exit = bool(bag) and not keep_running and not loop
-    nodes = [NodeSpec("sim_camera", "sim_camera", param_files=[sim_params],
-                      parameters=dict(REPLAY_SIM_CAMERA) if bag else {}),
-             _enhancer(method, b_from_frame, idle_exit)]
+    camera, marker_node = _camera_input(image_transport, pose_source, camera_info_file)
+    sim = dict(REPLAY_SIM_CAMERA) if bag else {}
+    if camera_info_file:
+        sim["camera_info_file"] = str(camera_info_file)
+    nodes = [NodeSpec("sim_camera", "sim_camera", param_files=[sim_params], parameters=sim),
+             _enhancer(method, b_from_frame, idle_exit, image_transport=image_transport,
+                       idle_timeout=MARKER_IDLE_TIMEOUT if marker_node is not None else IDLE_TIMEOUT)]
+    if marker_node is not None:
+        nodes.append(marker_node)
     if bag:
-        # without wait_for_nodes bag_play waits for a *matched* reader on each topic: the enhancer on the
-        # camera, sim_camera on the poses (both are the only readers in this graph)
-        nodes.append(_bag_play(bag, rate, loop, [FORWARD_INPUT, BACKWARD_INPUTS[2]], start_paused=start_paused))
+        if marker_node is None:
+            # without wait_for_nodes bag_play waits for a *matched* reader on each topic: the enhancer on the
+            # camera, sim_camera on the poses (both are the only readers in this graph)
+            nodes.append(_bag_play(bag, rate, loop, [IMAGE_TOPICS[image_transport], BACKWARD_INPUTS[2]],
+                                   start_paused=start_paused))
+        else:
+            # no pose topic in such a bag: the camera, read by the enhancer (subscribed once sim_camera listens
+            # for poses) and by panel_pose
+            nodes.append(_bag_play(bag, rate, loop, [IMAGE_TOPICS[image_transport]], ["enhancer", "panel_pose"],
+                                   start_paused))
     return nodes
 
 
@@ -395,7 +417,7 @@ FORWARD_ARGS = (
     *_ENHANCER_ARGS,
     *(a for a in BACKWARD_ARGS if a.name in ("rate", "loop")),
     GraphArg("keep_running", "with a bag: keep the graph running after its last frame, until Ctrl-C", bool, False),
-    *(a for a in BACKWARD_ARGS if a.name == "start_paused"),
+    *(a for a in BACKWARD_ARGS if a.name in ("start_paused", "image_transport", "pose_source", "camera_info_file")),
 )
 
 SIL_ARGS = BACKWARD_ARGS + _ENHANCER_ARGS
