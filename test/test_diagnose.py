@@ -303,11 +303,11 @@ def test_noise_level_is_never_below_quantization():
 
 
 def test_residual_evidence_accepts_what_theta_cannot_see():
-    """A θ-kind candidate is accepted when held-out θ does not rise but its least-squares fit lowers the
-    held-out mean squared residual frame by frame beyond the residual margin (the lamp-lit deep sea, where θ
-    is blind to a smooth brightness change); not when the reduction is within the margin or absent."""
-    from uw_sil.fit.judges.base import (MIN_RESIDUAL_MARGIN, Current, Judge, Refit, margin_for,
-                                        residual_improvement)
+    """A smooth photometric candidate is accepted when held-out θ does not rise but its least-squares fit
+    lowers the held-out mean squared residual (pooled over the frames) beyond the residual margin (the
+    lamp-lit deep sea, where θ is blind to a smooth brightness change); not when the reduction is within the
+    margin, spread over the frames, absent, or the effect is one with edges of its own (θ only)."""
+    from uw_sil.fit.judges.base import Current, Judge, Refit, residual_gain, residual_improvement
 
     cur = Current(effects=(), values={}, base=np.zeros(7), theta_fit=0.8, sel_pf=np.full(4, 0.80),
                   ls_sel_E=np.array([0.3, 0.2, 4.7, 76.9]))
@@ -318,19 +318,18 @@ def test_residual_evidence_accepts_what_theta_cannot_see():
 
     j = Judge()
     j.residual_evidence = True
-    strong = refit([0.14, 0.13, 1.6, 25.5])                      # lamps on a physically lit dive: -35 .. -67 %
-    imp = residual_improvement(cur, strong)
-    assert np.allclose(imp, 1 - np.array([0.14, 0.13, 1.6, 25.5]) / cur.ls_sel_E)
-    rm = margin_for(imp, 14, floor=MIN_RESIDUAL_MARGIN)
-    assert j.accept(strong, cur, 0.003, rm) == (True, pytest.approx(np.mean(imp) / rm), "residual")
+    # the physically lit dive of seed 401: the far, dark frame worse (-32 %), the others 70-86 % better
+    strong = refit(cur.ls_sel_E * np.array([1.32, 0.14, 0.30, 0.22]))
+    assert np.allclose(residual_improvement(cur, strong), [-0.32, 0.86, 0.70, 0.78])
+    gain, margin = residual_gain(cur, strong, 14)
+    assert gain == pytest.approx(1 - (cur.ls_sel_E * [1.32, 0.14, 0.30, 0.22]).sum() / cur.ls_sel_E.sum())
+    assert j.accept(strong, cur, 0.003, (gain, margin)) == (True, pytest.approx(gain / margin), "residual")
     weak = refit(cur.ls_sel_E * 0.99)                            # 1 % less: within the floor
-    assert j.accept(weak, cur, 0.003, margin_for(residual_improvement(cur, weak), 14, floor=MIN_RESIDUAL_MARGIN))[0] is False
-    noisy = refit(cur.ls_sel_E * np.array([0.5, 1.5, 0.6, 1.4]))    # mean 0 % with a large spread
-    assert j.accept(noisy, cur, 0.003, margin_for(residual_improvement(cur, noisy), 14,
-                                                  floor=MIN_RESIDUAL_MARGIN))[0] is False
+    assert j.accept(weak, cur, 0.003, residual_gain(cur, weak, 14))[0] is False
+    spread = refit(cur.ls_sel_E * np.array([1.0, 1.0, 1.0, 0.5]))  # one frame carries it all
+    assert j.accept(spread, cur, 0.003, residual_gain(cur, spread, 14))[0] is False
     edges = Judge()                                              # blur, geometry, pose: θ only
-    assert edges.accept(strong, cur, 0.003, rm)[0] is False
-    assert residual_improvement(cur, refit(None)) is None
+    assert edges.accept(strong, cur, 0.003, residual_gain(cur, strong, 14))[0] is False
+    assert residual_gain(cur, refit(None)) is None
     assert j.accept(refit(None), cur, 0.003, None)[0] is False
-    assert j.accept(refit(None, theta=0.81), cur, 0.003, None)[:1] == (True,)
-    assert j.accept(refit(None, theta=0.81), cur, 0.003, None)[2] == "theta"
+    assert j.accept(refit(None, theta=0.81), cur, 0.003, None)[::2] == (True, "theta")

@@ -244,7 +244,7 @@ def base_doubts(base: dict) -> list:
 
 
 def _candidate_row(rnd: int, current, e: str, r, margin: float, ok: bool, strength: float, criterion: str,
-                   imp=None, res_margin=None) -> dict:
+                   imp=None, rgain=None) -> dict:
     gain_pf = r.sel_pf - current.sel_pf
     row = {"round": rnd, "model": current.name, "effect": e, "theta_train": r.theta_fit,
            "theta_heldout": float(np.mean(r.sel_pf)), "delta_heldout": float(np.mean(gain_pf)),
@@ -252,9 +252,9 @@ def _candidate_row(rnd: int, current, e: str, r, margin: float, ok: bool, streng
            "criterion": criterion, "strength": float(strength), "params": _effect_flat(r.params, [e]),
            "kept_current_optimum": bool(r.started_at_current)}
     if imp is not None:
-        row["heldout_residual"] = {"improvement": float(np.mean(imp)),
+        row["heldout_residual"] = {"improvement": rgain[0] if rgain else None,
                                    "per_frame_improvement": np.asarray(imp).tolist(),
-                                   "margin": res_margin, "current": float(np.mean(current.ls_sel_E)),
+                                   "margin": rgain[1] if rgain else None, "current": float(np.mean(current.ls_sel_E)),
                                    "candidate": float(np.mean(r.extra["ls_sel_E"]))}
     if r.statistic is not None:
         row["heldout_statistic"] = r.statistic
@@ -288,7 +288,8 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
     from ..sim.params import ParamSpace
     from .backward import linear_start
     from .judges import JUDGES, Current, Job, margin_for
-    from .judges.base import MIN_RESIDUAL_MARGIN, current_ls, gain_words, residual_improvement, with_effect
+    from .judges.base import (current_ls, gain_words, least_squares_model, residual_gain, residual_improvement,
+                              with_effect)
     from .residuals import added_surface
     from .screening import screen_proxies
     from .signatures import SignatureContext, run_signatures
@@ -369,12 +370,11 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
             # two held-out tests per candidate (θ and the residual): both margins corrected for 2 x candidates
             margin = margin_for(r.sel_pf - current.sel_pf, 2 * len(cands), seed=seed)
             imp = residual_improvement(current, r)
-            res_margin = (margin_for(imp, 2 * len(cands), seed=seed, floor=MIN_RESIDUAL_MARGIN)
-                          if imp is not None else None)
-            ok, strength, crit = JUDGES[e].accept(r, current, margin, res_margin)
+            rgain = residual_gain(current, r, 2 * len(cands), seed=seed)
+            ok, strength, crit = JUDGES[e].accept(r, current, margin, rgain)
             if rnd == 1:
                 first[e] = float(np.mean(r.sel_pf - current.sel_pf)) if not ok else max(strength, 1e-6)
-            rows.append(_candidate_row(rnd, current, e, r, margin, ok, strength, crit, imp, res_margin))
+            rows.append(_candidate_row(rnd, current, e, r, margin, ok, strength, crit, imp, rgain))
             # θ, the paper's criterion, first: the residual decides only where no candidate raised θ (it
             # is the likelihood of the dark, noisy frames θ is blind to, not a rival ranking of the others)
             if ok and (best is None or (crit == "theta", strength) > (best[4] == "theta", best[2])):
@@ -394,13 +394,17 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
         before_E = current.ls_sel_E
         judge = JUDGES[e]
         keep = crit == "residual"
-        if judge.kind == "theta" and not judge.absorb and (job.max_iter > cheap.max_iter or keep):
+        if keep:
+            r_full = least_squares_model(job, r)
+        if judge.kind == "theta" and not judge.absorb and job.max_iter > cheap.max_iter and not keep:
             say(f"round {rnd}: refitting {current.name} + {e} with the full budget")
             starts = ([r.extra["ls_x"]] if "ls_x" in r.extra else []) + ([] if r.started_at_current else [r.x])
-            r_full = judge.refit(job, current, x_starts=starts, keep_effect=keep)
+            r_full = judge.refit(job, current, x_starts=starts)
             r_full.extra.update({k: v for k, v in r.extra.items() if k.startswith("ls_")})
+        if keep or (judge.kind == "theta" and not judge.absorb and job.max_iter > cheap.max_iter):
             candidates.append({**_candidate_row(rnd, current, e, r_full, margin, True, strength, crit,
-                                                residual_improvement(current, r_full), None), "full_refit": True})
+                                                residual_improvement(current, r_full),
+                                                residual_gain(current, r_full)), "full_refit": True})
             r = r_full
         if judge.absorb:
             job, current = judge.absorb_into(job, current, r)

@@ -13,7 +13,8 @@ Two kinds of held-out criterion:
                held-out *residual* evidence does (smooth photometric effects only,
                ``residual_evidence``): the least-squares fit of the model with the effect lowers
                the held-out frames' mean squared residual, frame by frame, relative to the least-squares
-               fit of the model without it, by more than its own margin (:func:`residual_improvement`).
+               fit of the model without it, pooled over the frames, by more than its own margin
+               (:func:`residual_gain`).
                Both are tried for every candidate (the margins are corrected for two tests each). θ, the
                paper's similarity, is built to rank simulations that look alike; it is nearly blind to a
                smooth change of brightness where the recording is dark and noisy (the deep sea lit by the
@@ -39,7 +40,7 @@ import numpy as np
 from ..diagfit import BASE_SIGMA0, EffectModel, FrameObjective, fit_model, ls_fit, noise_sigmas, residual_energy
 
 __all__ = ["Job", "Current", "Refit", "Judge", "theta_refit", "margin_for", "bootstrap_se", "z_multiple",
-           "MIN_MARGIN", "MIN_RESIDUAL_MARGIN", "residual_improvement", "current_ls"]
+           "MIN_MARGIN", "MIN_RESIDUAL_MARGIN", "residual_gain", "residual_improvement", "current_ls"]
 
 #: Smallest held-out θ gain accepted, whatever the bootstrap says (the spread of four frames can be tiny).
 MIN_MARGIN = 0.003
@@ -70,6 +71,23 @@ def margin_for(gain_pf, m: int = 1, seed: int = 0, floor: float = MIN_MARGIN) ->
     """Noise margin a mean held-out gain must beat: ``z(m)`` bootstrap standard errors of the per-frame gains
     (corrected for the ``m`` tests of the round), and at least ``floor`` (:data:`MIN_MARGIN` for θ)."""
     return max(floor, z_multiple(m) * bootstrap_se(gain_pf, seed=seed))
+
+
+def residual_gain(current: "Current", r: "Refit", m: int = 1, seed: int = 0) -> Optional[tuple]:
+    """``(gain, margin)`` of the held-out residual: the relative reduction of the mean squared residual pooled
+    over the held-out frames, ``1 - sum E_r / sum E_current`` (the Gaussian likelihood with one noise level:
+    a dark far frame, whose residual is tiny, weighs as little as it tells), and its margin: ``z(m)``
+    bootstrap standard errors (frames resampled) and at least :data:`MIN_RESIDUAL_MARGIN`. None without a
+    least-squares fit."""
+    E = r.extra.get("ls_sel_E")
+    if E is None or current.ls_sel_E is None:
+        return None
+    Ec, Er = np.asarray(current.ls_sel_E, float), np.asarray(E, float)
+    gain = 1.0 - Er.sum() / max(Ec.sum(), 1e-9)
+    rng = np.random.default_rng(seed)
+    idx = rng.integers(0, Ec.size, (2000, Ec.size))
+    boot = 1.0 - Er[idx].sum(axis=1) / np.maximum(Ec[idx].sum(axis=1), 1e-9)
+    return float(gain), max(MIN_RESIDUAL_MARGIN, z_multiple(m) * float(np.std(boot)))
 
 
 def residual_improvement(current: "Current", r: "Refit") -> Optional[np.ndarray]:
@@ -262,22 +280,20 @@ class Judge:
 
     # ------------------------------------------------------------------ refit and criterion
 
-    def refit(self, job: Job, current: Current, x_starts: Optional[list] = None, keep_effect: bool = False) -> Refit:
+    def refit(self, job: Job, current: Current, x_starts: Optional[list] = None) -> Refit:
         """Refit the current model plus this effect; ``x_starts``: whole parameter vectors of the same model
-        to start from too (an earlier, cheaper refit); ``keep_effect``: the effect was accepted, the refit
-        must not fall back to the model without it."""
-        return theta_refit(job, current, self, x_starts=x_starts, keep_effect=keep_effect)
+        to start from too (an earlier, cheaper refit)."""
+        return theta_refit(job, current, self, x_starts=x_starts)
 
-    def accept(self, r: Refit, current: Current, margin: float, res_margin: Optional[float] = None) -> tuple:
+    def accept(self, r: Refit, current: Current, margin: float, residual: Optional[tuple] = None) -> tuple:
         """``(accepted, strength, criterion)``: held-out θ gain over the current model beyond ``margin``, or
-        else the held-out residual improvement (:func:`residual_improvement`) beyond ``res_margin``; strength
-        is the gain in margins (it ranks the accepted candidates of a round)."""
+        else (smooth photometric effects) the held-out residual gain beyond its margin, ``residual`` =
+        :func:`residual_gain`; strength is the gain in margins (it ranks the accepted candidates of a round)."""
         gain = float(np.mean(r.sel_pf - current.sel_pf))
         if gain > margin:
             return True, gain / margin, "theta"
-        imp = residual_improvement(current, r) if self.residual_evidence else None
-        if imp is not None and res_margin is not None and float(np.mean(imp)) > res_margin:
-            return True, float(np.mean(imp)) / res_margin, "residual"
+        if self.residual_evidence and residual is not None and residual[0] > residual[1]:
+            return True, residual[0] / residual[1], "residual"
         return False, gain / margin, "theta"
 
     # ------------------------------------------------------------------ words
@@ -315,7 +331,7 @@ def _sigma0(judges) -> np.ndarray:
 
 
 def theta_refit(job: Job, current: Current, judge: Judge, starts: Optional[list] = None,
-                x_starts: Optional[list] = None, keep_effect: bool = False) -> Refit:
+                x_starts: Optional[list] = None) -> Refit:
     """Refit the current model plus ``judge.effect`` jointly on the fit frames (θ, CMA-ES with the common
     budget, started from the best of: the current optimum with the effect neutral, the plug-in's start, least
     squares from those and from the plug-in's alternative starts) and score it per held-out frame.
@@ -355,8 +371,6 @@ def theta_refit(job: Job, current: Current, judge: Judge, starts: Optional[list]
             ls_extra = {"ls_x": x_best, "ls_sel_E": E_sel, "ls_fit_E": float(np.nanmin(E_fit)),
                         "ls_params": {"base": np.array(list(p["base"].values())), "effects": p["effects"]}}
     noise = noise_sigmas(rfit)
-    if keep_effect:
-        cand = cand[1:]
     with FrameObjective(rfit, model, noise, seed=job.seed) as of:
         th = of(np.stack(cand))
     x0 = cand[int(np.nanargmax(th))]
@@ -373,7 +387,7 @@ def theta_refit(job: Job, current: Current, judge: Judge, starts: Optional[list]
     j = 0 if t_all[0] >= t_all[2] else 2
     t_fit = np.array([t_all[j], t_all[1]])
     neutral = job.judges[judge.effect].neutral(model.params_of(x_id)["effects"][judge.effect])
-    kept_current = bool(neutral and not t_fit[0] >= t_fit[1] and not keep_effect)
+    kept_current = bool(neutral and not t_fit[0] >= t_fit[1])
     x = x_id if kept_current else (fit.x if j == 0 else x_mix)
     sel_pf = job.frame_theta(model, job.sel_f, x, seed_offset=50)[0]
     return Refit(effect=judge.effect, effects=names, x=x, params=model.params_of(x),
@@ -382,6 +396,15 @@ def theta_refit(job: Job, current: Current, judge: Judge, starts: Optional[list]
                  extra={"theta_fit_optimizer": float(t_all[0]), "theta_fit_nested_start": float(t_all[1]),
                         "theta_fit_effect_with_current_base": float(t_all[2]),
                         "resolution": res, "n_evals": int(fit.n_evals), **ls_extra})
+
+
+def least_squares_model(job: Job, r: Refit) -> Refit:
+    """The refit whose model is its least-squares fit (an effect accepted by the held-out residual: that fit is
+    the evidence, and a θ refit from it drifts back towards the model without the effect where θ is blind),
+    scored by θ on the fit and held-out frames for the record."""
+    x = np.asarray(r.extra["ls_x"], float)
+    return replace(r, x=x, params=r.model.params_of(x), theta_fit=float(job.frame_theta(r.model, job.fit_f, x).mean()),
+                   sel_pf=job.frame_theta(r.model, job.sel_f, x, seed_offset=50)[0], started_at_current=False)
 
 
 def gain_words(b_held: float, c_held: float, statistic: Optional[dict] = None,

@@ -85,7 +85,7 @@ class CompressionJudge(Judge):
         return Refit(effect=self.effect, effects=(self.effect,), x=np.array([q]), params=params,
                      theta_fit=current.theta_fit, sel_pf=np.asarray(current.sel_pf), statistic=stat)
 
-    def accept(self, r, current, margin, res_margin=None):
+    def accept(self, r, current, margin, residual=None):
         st = r.statistic
         ok = st["improvement"] > st["margin"]
         return ok, st["improvement"] / st["margin"] if ok else 0.0, "statistic"

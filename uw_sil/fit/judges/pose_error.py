@@ -89,7 +89,7 @@ class PoseErrorJudge(Judge):
         return Refit(effect=self.effect, effects=names, x=x, params=params, theta_fit=theta_fit, sel_pf=sel_pf,
                      model=model, statistic=stat, extra={"corrected": (fit_c, sel_c)})
 
-    def accept(self, r, current, margin, res_margin=None):
+    def accept(self, r, current, margin, residual=None):
         gain = float(np.mean(r.sel_pf - current.sel_pf))
         st = r.statistic
         if gain > margin:

@@ -167,7 +167,7 @@ class SensorNoiseJudge(Judge):
         return Refit(effect=self.effect, effects=(self.effect,), x=r["x"], params=r["params"],
                      theta_fit=r["theta_train"], sel_pf=r["held_pf"], statistic=r["statistic"])
 
-    def accept(self, r, current, margin, res_margin=None):
+    def accept(self, r, current, margin, residual=None):
         st = r.statistic
         gain = float(np.mean(r.sel_pf - current.sel_pf))
         # next to another effect (which changes the signal and with it the intensity dependence of the
