@@ -255,23 +255,30 @@ class BackwardObjective:
             raise ValueError("no frames to fit")
         self.space = space
         self.frames = frames
-        self.prepared = [PreparedRender(f.render.rgb, f.render.range, f.render.depth, fog=fog) for f in frames]
+        self.prepared = [PreparedRender(f.render.rgb, f.render.range, f.render.depth, fog=fog,
+                                        cover=getattr(f.render, "cover", None)) for f in frames]
         if hist_pixels not in HIST_PIXELS:
             raise ValueError(f"hist_pixels must be one of {HIST_PIXELS}, got {hist_pixels!r}")
         self.hist_pixels = hist_pixels
         # One set of θ references per worker thread (they reuse work buffers, so they are not shared).
         # FFTs, exp and most array work release the GIL: two threads on two cores give ~1.6-1.8x.
         self.workers = default_threads(workers)
-        self._refs = [[ThetaReference(f.image, channels=channels, hist_mask=_hist_masks(f, hist_pixels))
-                       for f in frames] for _ in range(self.workers)]
+        refs = [ThetaReference(f.image, channels=channels, hist_mask=_hist_masks(f, hist_pixels)) for f in frames]
+        self._refs = [refs] + [[r.fork() for r in refs] for _ in range(self.workers - 1)]
         self.references = self._refs[0]
         self._pool = None
         self.noise_sigma = [self._noise_sigma(f, sim_noise) for f in frames]
         self.noise = [NoiseField(f.image.shape, s, seed=seed + i) if np.any(s > 0) else None
                       for i, (f, s) in enumerate(zip(frames, self.noise_sigma))]
-        h, w = frames[0].image.shape[:2]
-        chunk = -(-max(1, int(batch)) // self.workers)
-        self._bufs = [np.empty((chunk, h, w, 3), dtype=np.float32) for _ in range(self.workers)]
+        # The inner loop works on planes (3, H * W); the same realization, rearranged (NoiseField.apply is
+        # elementwise). Reduced frames (ReducedFitFrame) are averages over blocks, not 8-bit values: their
+        # candidates are not rounded.
+        self._quantize = [not isinstance(f, ReducedFitFrame) for f in frames]
+        for nf in self.noise:
+            if nf is not None:
+                nf.field = np.ascontiguousarray(np.moveaxis(nf.field, -1, 0).reshape(nf.field.shape[-1], -1))
+        self._bufs = [[(np.empty((3, f.image.shape[0] * f.image.shape[1]), dtype=np.float32), prep.work_buffers())
+                       for f, prep in zip(frames, self.prepared)] for _ in range(self.workers)]
         self.n_calls = 0
 
     @staticmethod
@@ -283,7 +290,8 @@ class BackwardObjective:
                 return np.zeros(3)
             if sim_noise != "estimate":
                 raise ValueError(f"sim_noise must be 'estimate', 'none' or a number, got {sim_noise!r}")
-            water = frame.render.labels == 0
+            cover = getattr(frame.render, "cover", None)
+            water = frame.render.labels == 0 if cover is None else cover == 0
             return water_noise_sigma(frame.image, water)
         sigma = np.broadcast_to(np.asarray(sim_noise, dtype=float), (3,)).copy()
         if not np.all(np.isfinite(sigma)) or np.any(sigma < 0):
@@ -315,22 +323,77 @@ class BackwardObjective:
         return theta
 
     def _score_part(self, w: int, P: np.ndarray, idx: np.ndarray, acc: np.ndarray):
-        """θ summed over frames for candidates ``P[idx]``, with worker ``w``'s references and buffer."""
-        refs, bufw = self._refs[w], self._bufs[w]
-        for prep, ref, noise in zip(self.prepared, refs, self.noise):
-            for s in range(0, len(idx), len(bufw)):
-                sel = idx[s:s + len(bufw)]
-                buf = bufw[:len(sel)]
-                prep(P[sel], out=buf)
+        """θ summed over frames for candidates ``P[idx]``, with worker ``w``'s references and buffers."""
+        from ..sim.params import validate_rgb_params
+
+        Pw = validate_rgb_params(P[idx]).astype(np.float32)
+        for prep, ref, noise, (buf, work), quantize in zip(self.prepared, self._refs[w], self.noise, self._bufs[w],
+                                                            self._quantize):
+            for j, p in zip(idx, Pw):
+                prep.planar(p, out=buf, work=work)
                 buf *= 255.0
                 if noise is not None:
-                    noise.apply(buf)
-                acc[sel] += ref.score(buf)
+                    noise.apply(buf, quantize=quantize)
+                acc[j] += ref.score_planar(buf)
 
     def close(self):
         if self._pool is not None:
             self._pool.shutdown()
             self._pool = None
+
+
+@dataclass
+class ReducedRender:
+    """A render box-downsampled by ``factor`` (:func:`reduce_frame`): ``rgb``, ``range`` and ``depth`` averaged
+    over the model pixels of each block (``inf`` where none), ``cover`` the block's fraction on the model,
+    ``labels`` the label of the block's centre pixel where ``cover >= 0.5``, else 0."""
+
+    rgb: np.ndarray
+    range: np.ndarray
+    depth: np.ndarray
+    labels: np.ndarray
+    cover: np.ndarray
+
+
+@dataclass
+class ReducedFitFrame(FitFrame):
+    """A :class:`FitFrame` box-downsampled by ``factor``: ``image`` is float32 (block means, 0..255),
+    ``render`` a :class:`ReducedRender`."""
+
+    factor: int = 1
+
+
+def reduce_frame(frame: FitFrame, factor: int) -> FitFrame:
+    """The frame and its render averaged over ``factor x factor`` blocks (the coarse stage of :func:`fit_frames`).
+
+    The underwater model on such a block, ``b + cover * T * (i - b)`` (:class:`uw_sil.sim.optics.PreparedRender`
+    with ``cover``), is the block average of the full-resolution model where the transmission is constant over
+    the block; rendering at the reduced size instead would alias the silhouettes while the real frame's are
+    area-averaged.
+    """
+    from .residuals import box_down
+
+    f = int(factor)
+    if f <= 1:
+        return frame
+    rr = frame.render
+    hit = np.isfinite(rr.range) & np.isfinite(rr.depth)
+    cover = box_down(hit, f)
+    safe = np.maximum(cover, np.float32(1e-6))
+    rgb = box_down(np.where(hit[..., None], rr.rgb, 0.0), f) / safe[..., None]
+    rng = box_down(np.where(hit, rr.range, 0.0), f) / safe
+    dep = box_down(np.where(hit, rr.depth, 0.0), f) / safe
+    none = cover <= 0
+    rgb[none] = 0.0
+    rng[none] = np.inf
+    dep[none] = np.inf
+    h, w = cover.shape
+    c = f // 2
+    labels = np.where(cover >= 0.5, rr.labels[c:h * f:f, c:w * f:f][:h, :w], 0).astype(np.uint8)
+    render = ReducedRender(np.clip(rgb, 0.0, 1.0).astype(np.float32), rng.astype(np.float32),
+                           dep.astype(np.float32), labels, np.clip(cover, 0.0, 1.0).astype(np.float32))
+    return ReducedFitFrame(frame.index, frame.stamp_ns, box_down(frame.image, f), render, frame.coverage,
+                           frame.image_index, frame.pose_info, factor=f)
 
 
 @dataclass
