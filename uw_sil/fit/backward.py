@@ -39,7 +39,8 @@ from ..sim.params import ParamSpace, UnderwaterParams
 
 __all__ = ["FitFrame", "FrameSelection", "FrameSelector", "select_frames", "BackwardObjective", "FitResult", "fit_frames",
            "fit_bag", "write_params_yaml", "read_params_yaml", "write_json_atomic", "DEFAULT_NODE_NAME", "FIT_TOL",
-           "FIT_PATIENCE", "LINEAR_START_SIGMA0", "LINEAR_START_STDS", "spread_stride"]
+           "FIT_PATIENCE", "CMAES_PATIENCE", "CMAES_MIN_STEP", "LINEAR_START_SIGMA0", "LINEAR_START_STDS",
+           "spread_stride", "reduce_frame", "ReducedFitFrame", "ReducedRender"]
 
 DEFAULT_NODE_NAME = "/**"
 
@@ -52,13 +53,24 @@ DEFAULT_NODE_NAME = "/**"
 FIT_TOL = 1e-4
 FIT_PATIENCE = 20
 
+#: CMA-ES from the linear start (:func:`fit_frames`' defaults for it): a window of 5 iterations instead of
+#: :data:`FIT_PATIENCE`, and a stop once the search has collapsed (largest coordinate standard deviation below
+#: :data:`CMAES_MIN_STEP` of the range: a tenth of the smallest recovery tolerance, 5 % of a_c = 0.05).
+#: The dive-start fit waits for ship time: measured on the demo trial (640x480, K = 3), today's window of 20
+#: ran 46 iterations where the last 20 added 3.5e-5 of θ; see bench/README.md for what the shorter window
+#: gives up (θ and the recovery and reproducibility benches).
+CMAES_PATIENCE = 5
+CMAES_MIN_STEP = 2.5e-4
+
 #: CMA-ES from the linear start: initial step as a fraction of each range, and per-parameter factors
 #: (a_r a_g a_b b_r b_g b_b rho_F). The linear start is close (measured: within 0.15 of the recovery
 #: tolerances); a normalized step of 0.01 costs θ 2-9e-4 in attenuation, 2e-3 in fog, 2-5e-2 in the
-#: background. With 0.1 for all (the former default) every sample was worse than the start for the first
-#: 35-52 iterations (0.03: 17-38), and after 100 iterations 3/4 trials were recovered; with these 4/4,
-#: the first improvement came at iteration 1-10.
-LINEAR_START_SIGMA0 = 0.01
+#: background. With 0.1 for all (an earlier default) every sample was worse than the start for the first
+#: 35-52 iterations (0.03: 17-38) on four 320x240 trials; with 0.01 the first improvement came at iteration
+#: 1-10. At 640x480 (the demo trial, K = 3) 0.01 still gave 8 iterations without any improvement (the first
+#: at iteration 8, when CMA-ES had shrunk its step to 0.0028); with 0.0025 the first came at iteration 2 and
+#: 59 % of the final gain by iteration 4 (bench/bench_fit_speed.py, bench/README.md).
+LINEAR_START_SIGMA0 = 0.0025
 LINEAR_START_STDS = (1.0, 1.0, 1.0, 0.25, 0.25, 0.25, 1.0)
 
 
@@ -461,7 +473,7 @@ def fit_frames(frames: list, method: str = "pso", color_model: str = "rgb", chan
                fog: str = "exp2", hist_pixels: str = "split", sim_noise="estimate", lower=None, upper=None,
                seed: Optional[int] = 0,
                start: Optional[UnderwaterParams] = None, x0="linear", progress: bool = False,
-               callback: Optional[Callable] = None, skipped=(), tol: float = FIT_TOL, patience: int = FIT_PATIENCE,
+               callback: Optional[Callable] = None, skipped=(), tol: float = FIT_TOL, patience: Optional[int] = None,
                **optim_options) -> FitResult:
     """Fit the 7 parameters to already selected frames.
 
@@ -477,8 +489,11 @@ def fit_frames(frames: list, method: str = "pso", color_model: str = "rgb", chan
 
     The fit stops on convergence, when the best θ gained no more than ``tol`` over the last ``patience``
     iterations (:func:`uw_sil.fit.optimize.optimize`; ``stop_reason`` ``"converged"``), or after ``max_iter``
-    iterations (default 100). ``patience=0`` turns that stop off; ``method="pso", x0=None, patience=0`` is
-    the paper's PSO exactly (a random swarm of 20, up to 100 iterations).
+    iterations (default 100). ``patience=None`` (default) is :data:`CMAES_PATIENCE` for CMA-ES from the
+    linear start, which then also stops when its step has collapsed (``min_step`` :data:`CMAES_MIN_STEP`,
+    ``stop_reason`` ``"step"``), else :data:`FIT_PATIENCE`. ``patience=0`` turns that stop off;
+    ``method="pso", x0=None, patience=0`` is the paper's PSO exactly (a random swarm of 20, up to 100
+    iterations).
 
     For PSO a start is one particle of the otherwise random initial swarm. Measured on a 640x480
     synthetic trial (K = 3, 4.0/3.3/1.9 m), CMA-ES from the centre had θ 0.862 after 100 iterations
@@ -500,20 +515,35 @@ def fit_frames(frames: list, method: str = "pso", color_model: str = "rgb", chan
             x0 = water_start(frames, space)
         elif x0 == "linear":
             x0 = linear_start(frames, space, fog=fog)
-            if method == "cmaes" and "sigma0" not in optim_options:
-                optim_options["sigma0"] = LINEAR_START_SIGMA0
-                cma_options = dict(optim_options.get("cma_options") or {})
-                cma_options.setdefault("CMA_stds", list(LINEAR_START_STDS))
-                optim_options["cma_options"] = cma_options
+            if method == "cmaes":
+                if "sigma0" not in optim_options:
+                    optim_options["sigma0"] = LINEAR_START_SIGMA0
+                    cma_options = dict(optim_options.get("cma_options") or {})
+                    cma_options.setdefault("CMA_stds", list(LINEAR_START_STDS))
+                    optim_options["cma_options"] = cma_options
+                optim_options.setdefault("min_step", CMAES_MIN_STEP)
+                if patience is None:
+                    patience = CMAES_PATIENCE
         else:
             raise ValueError(f"x0 must be 'linear', 'water', None or a vector, got {x0!r}")
+    if patience is None:
+        patience = FIT_PATIENCE
     # θ where the search starts: x0, or the centre of the bounds (CMA-ES' first mean; PSO: a random swarm)
     x_opt_start = np.asarray(x0, dtype=float) if x0 is not None else \
         ((space.lower + space.upper) / 2 if method == "cmaes" else None)
-    theta_x0 = None if x_opt_start is None else float(obj(x_opt_start[None])[0])
     try:
         res = optimize(obj, space.lower, space.upper, method=method, seed=seed, progress=progress,
                        callback=callback, names=space.names, x0=x0, tol=tol, patience=patience, **optim_options)
+        theta_x0 = None
+        if x_opt_start is not None:
+            # CMA-ES evaluates its start first (injected): the same point gives the same θ, bit for bit
+            ev = res.evaluations
+            if method == "cmaes" and len(ev) and ev.x[0].tobytes() == x_opt_start.tobytes() and np.isfinite(ev.f[0]):
+                theta_x0 = float(ev.f[0])
+            elif x_opt_start.tobytes() == x_start.tobytes():
+                theta_x0 = theta_start
+            else:
+                theta_x0 = float(obj(x_opt_start[None])[0])
     finally:
         obj.close()
     params = UnderwaterParams.from_vector(np.clip(space.to_rgb(res.x_best), 0, None), model="rgb") \

@@ -54,6 +54,9 @@ def run_cmaes(rec, seed, popsize, max_iter, opts, u0):
         sigmas.append(float(np.max(es.stds)))
         if rec.stopped:
             break
+        if opts.get("min_step") and sigmas[-1] < opts["min_step"]:
+            rec.stop_reason = "step"    # the search distribution has collapsed: no coordinate moves by more
+            break
         if rec.iteration >= max_iter:
             rec.stop_reason = "max_iter"
             break
