@@ -254,6 +254,12 @@ class BackwardObjective:
     workers : int, optional
         Threads evaluating parts of a batch (default: :func:`uw_sil._shared.process.default_threads`).
         Results do not depend on it.
+    batch : int
+        Unused (kept for callers): candidates are simulated and scored one at a time, as planes
+        (:meth:`uw_sil.sim.optics.PreparedRender.planar`, :meth:`uw_sil.metrics.theta.ThetaReference.score_planar`).
+
+    Frames may be :class:`ReducedFitFrame` (:func:`reduce_frame`): the model is then area-exact at the
+    silhouettes and the candidates are not rounded to 8 bits (the reduced real frame is a block mean).
     """
 
     def __init__(self, frames: list, space: ParamSpace, channels: str = "HSV", fog: str = "exp2",
