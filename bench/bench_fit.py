@@ -1,6 +1,7 @@
 """Backward optimization speed: the paper's PSO (20 particles x 100 iterations, random swarm) on 640x480
 frames with K = 1 and K = 3, CMA-ES (from the centre of the bounds, like the PSO) run until it reaches
-the PSO's final θ (evaluations, wall time, ratio), and the default fit (CMA-ES from the linear start).
+the PSO's final θ (evaluations, wall time, ratio), and the default fit (CMA-ES from the linear start; its
+speed against earlier code: bench_fit_speed.py).
 
     .venv/bin/python bench/bench_fit.py [--frames-in-trial 30] [--seed 0]
 
@@ -60,7 +61,8 @@ def main():
             ratio1 = ratio
         lin = fit_frames(frames, method="cmaes", seed=args.seed, max_iter=40)
         err = np.abs(lin.params.as_vector() - truth)
-        print(f"[{name}] CMA-ES from the linear start, 40 iterations: {lin.optim.n_evals} evals, {lin.wall_time_s:.1f} s, "
+        print(f"[{name}] CMA-ES from the linear start (default stop, at most 40 iterations): {lin.optim.n_iters} it "
+              f"({lin.optim.stop_reason}), {lin.optim.n_evals} evals, {lin.wall_time_s:.1f} s, "
               f"θ = {lin.theta_best:.5f}; |error| a {err[:3].round(3)}, b {err[3:6].round(3)}, rho {err[6]:.3f}")
     print(f"ratio PSO wall / CMA-ES wall to the same θ (K=1): {ratio1:.1f}x")
     return 0

@@ -119,3 +119,33 @@ def test_frames_of_different_sizes_are_refused(trial):
     other = Sample(samples[1].stamp_ns, np.zeros((120, 160, 3), np.uint8), small, samples[1].pose)
     with Renderer(camera=SMALL) as r, pytest.raises(ValueError, match="frame 1 is 160x120 but earlier frames are 320x240"):
         select_frames([samples[0], other], r, k=2)
+
+
+def test_objective_is_theta_of_the_noisy_degraded_frames_bit_for_bit(frames):
+    """The planar inner loop (hit pixels only, one HSV pass for panel and water, references forked per thread)
+    gives exactly mean_k θ(real_k, rint(clip(255 * model(render_k) + noise_k))) as written plainly."""
+    from uw_sil.metrics.theta import ThetaReference
+    from uw_sil.sim.noise import NoiseField
+    from uw_sil.sim.optics import PreparedRender
+
+    X = np.vstack([TRUTH.as_vector(), TRUTH.as_vector() * [1.2, 0.9, 1, 1, 1.1, 1, 0.5],
+                   [0.1, 0.5, 0.3, 0.9, 0.0, 0.2, 0.4]])
+    got = BackwardObjective(frames, ParamSpace("rgb"), workers=2)(X)
+    want = np.zeros(len(X))
+    for i, f in enumerate(frames):
+        imgs = PreparedRender(f.render.rgb, f.render.range, f.render.depth)(X)
+        imgs *= 255.0
+        panel = f.render.labels == 1
+        NoiseField(f.image.shape, BackwardObjective._noise_sigma(f, "estimate"), seed=i).apply(imgs)
+        want += ThetaReference(f.image, hist_mask=[panel, ~panel]).score(imgs)
+    assert got.tobytes() == (want / len(frames)).tobytes()
+
+
+def test_cmaes_from_the_linear_start_stops_early_and_theta_x0_is_its_first_evaluation(frames):
+    fit = fit_frames(frames, method="cmaes", seed=1)
+    o = fit.optim
+    assert o.patience == 5 and o.settings["min_step"] == 2.5e-4 and o.settings["sigma0"] == 0.0025
+    assert o.stop_reason in ("converged", "step") and o.n_iters < 100
+    assert fit.theta_x0 == o.evaluations.f[0] == BackwardObjective(frames, fit.space)(linear_start(frames, fit.space)[None])[0]
+    pso = fit_frames(frames, method="pso", seed=1, max_iter=2)
+    assert pso.optim.patience == 20

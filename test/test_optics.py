@@ -110,3 +110,30 @@ def test_render_validation():
         degrade((rgb * 255).astype(np.uint8), rng, depth, [0.1] * 7)
     with pytest.raises(ValueError, match="NaN"):
         degrade(rgb, np.full((2, 2), np.nan), depth, [0.1] * 7)
+
+
+def test_prepared_planar_equals_the_batched_call_and_cover_is_the_block_average():
+    """planar() computes only the hit pixels; water pixels are b exactly, as in the full-plane arithmetic."""
+    rng = np.random.default_rng(3)
+    h, w = 24, 32
+    rgb = rng.uniform(0, 1, (h, w, 3)).astype(np.float32)
+    r = rng.uniform(1, 4, (h, w)).astype(np.float32)
+    z = (r * 0.9).astype(np.float32)
+    r[:, :10] = np.inf
+    z[:, :10] = np.inf
+    params = np.array([[0.4, 0.1, 0.08, 0.06, 0.32, 0.42, 0.08], [0.2, 0.3, 0.5, 0.5, 0.1, 0.9, 0.0]])
+    for fog in ("exp2", "exp", "none"):
+        prep = PreparedRender(rgb, r, z, fog=fog)
+        batch = prep(params)
+        for k, p in enumerate(params):
+            planes = prep.planar(p, work=prep.work_buffers())
+            assert np.array_equal(np.moveaxis(planes.reshape(3, h, w), 0, -1), batch[k])
+            assert np.all(planes.reshape(3, h, w)[:, :, :10] == p[3:6].astype(np.float32)[:, None, None])
+    # a block half on the model at constant range: the average of its full-resolution pixels
+    cover = np.full((h, w), 0.5, np.float32)
+    rr = np.full((h, w), 2.0, np.float32)
+    half = PreparedRender(rgb, rr, rr, cover=cover)(params[0])
+    full = PreparedRender(rgb, rr, rr)(params[0])
+    np.testing.assert_allclose(half, (full + params[0][3:6]) / 2, rtol=0, atol=1e-6)
+    with pytest.raises(ValueError, match="cover"):
+        PreparedRender(rgb, rr, rr, cover=cover * 3)

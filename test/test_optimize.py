@@ -447,3 +447,19 @@ def test_cmaes_evaluates_x0_first_so_a_good_start_is_never_lost():
     first = res.evaluations.x[res.evaluations.iteration == 0]
     assert np.any(np.all(np.isclose(first, x0), axis=1))
     assert res.f_best == pytest.approx(0.0, abs=1e-12)
+
+
+def test_cmaes_stops_when_its_step_has_collapsed():
+    """min_step: the first generation after which the largest coordinate std (normalized box) is below it."""
+    r = optimize(bowl, LO, HI, method="cmaes", seed=0, max_iter=200, min_step=1e-3, **OWN_RULES_OFF["cmaes"])
+    check_consistency(r)
+    steps = np.array(r.backend_info["step_history"])
+    assert r.stop_reason == "step" and len(steps) == r.n_iters + 1
+    assert steps[-1] < 1e-3 and np.all(steps[:-1] >= 1e-3)
+    assert r.settings["min_step"] == 1e-3
+    off = optimize(bowl, LO, HI, method="cmaes", seed=0, max_iter=30, **OWN_RULES_OFF["cmaes"])
+    assert off.stop_reason == "max_iter" and off.settings["min_step"] == 0.0
+    with pytest.raises(ValueError, match="min_step"):
+        optimize(bowl, LO, HI, method="cmaes", min_step=-1.0)
+    with pytest.raises(TypeError, match="min_step"):
+        optimize(bowl, LO, HI, method="pso", min_step=1e-3)

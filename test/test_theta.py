@@ -124,3 +124,26 @@ def test_bad_input(frames):
         mean_theta([tref, tref], [cands, cands[:2]])
     with pytest.raises(ValueError, match="empty"):
         mean_theta([], [])
+
+
+def test_planar_split_and_forked_scores_are_those_of_score_bit_for_bit(frames):
+    """The optimizer's inner loop (score_planar, one HSV pass for disjoint histogram masks, a forked reference
+    per thread) gives exactly the values of ThetaReference.score; overlapping masks fall back to one pass each."""
+    ref, cands = frames[0]
+    left = np.zeros(ref.shape[:2], bool)
+    left[:, :100] = True
+    middle = np.zeros(ref.shape[:2], bool)
+    middle[50:200, 60:180] = True
+    for masks in ([left, ~left], [left, middle], [left & ~middle, middle]):
+        tref = ThetaReference(ref, hist_mask=masks)
+        assert (tref._split is not None) == (not np.any(masks[0] & masks[1]))
+        want = tref.score(cands)
+        separate = [ThetaReference(ref, hist_mask=m).evaluate(cands).theta2 for m in masks]
+        np.testing.assert_array_equal(tref.evaluate(cands).theta2, (separate[0] + separate[1]) / 2)
+        twin = tref.fork()
+        for k, c in enumerate(cands):
+            planes = np.ascontiguousarray(np.moveaxis(c, -1, 0)).reshape(3, -1)
+            assert tref.score_planar(planes) == want[k]
+            assert twin.score_planar(planes) == want[k]
+    with pytest.raises(ValueError, match="planes"):
+        tref.score_planar(cands[0])

@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .fit.backward import FIT_PATIENCE, FIT_TOL
+from .fit.backward import CMAES_PATIENCE, FIT_PATIENCE, FIT_TOL
 from .sim.params import RGB_NAMES, UnderwaterParams
 
 __all__ = ["main", "build_parser", "EXIT_BAD_INPUT"]
@@ -707,7 +707,8 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--tol", type=float, default=None,
                    help=f"stop on convergence: best theta gained <= TOL over --patience iterations (default {FIT_TOL:g})")
     f.add_argument("--patience", type=int, default=None,
-                   help=f"window of the stop on convergence, in iterations (default {FIT_PATIENCE}); 0: no such stop "
+                   help=f"window of the stop on convergence, in iterations (default {FIT_PATIENCE}; {CMAES_PATIENCE} for "
+                        "cmaes from the linear start, which also stops when its step has collapsed); 0: no such stop "
                         "(--optimizer pso --start centre --patience 0 is the paper's PSO exactly)")
     f.add_argument("--seed", type=int, default=0)
     f.add_argument("--out", default="fit.yaml", help="ROS 2 parameters file for the sim camera node")

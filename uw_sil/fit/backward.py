@@ -39,7 +39,8 @@ from ..sim.params import ParamSpace, UnderwaterParams
 
 __all__ = ["FitFrame", "FrameSelection", "FrameSelector", "select_frames", "BackwardObjective", "FitResult", "fit_frames",
            "fit_bag", "write_params_yaml", "read_params_yaml", "write_json_atomic", "DEFAULT_NODE_NAME", "FIT_TOL",
-           "FIT_PATIENCE", "LINEAR_START_SIGMA0", "LINEAR_START_STDS", "spread_stride"]
+           "FIT_PATIENCE", "CMAES_PATIENCE", "CMAES_MIN_STEP", "LINEAR_START_SIGMA0", "LINEAR_START_STDS",
+           "spread_stride", "reduce_frame", "ReducedFitFrame", "ReducedRender"]
 
 DEFAULT_NODE_NAME = "/**"
 
@@ -52,13 +53,24 @@ DEFAULT_NODE_NAME = "/**"
 FIT_TOL = 1e-4
 FIT_PATIENCE = 20
 
+#: CMA-ES from the linear start (:func:`fit_frames`' defaults for it): a window of 5 iterations instead of
+#: :data:`FIT_PATIENCE`, and a stop once the search has collapsed (largest coordinate standard deviation below
+#: :data:`CMAES_MIN_STEP` of the range: a tenth of the smallest recovery tolerance, 5 % of a_c = 0.05).
+#: The dive-start fit waits for ship time: measured on the demo trial (640x480, K = 3), today's window of 20
+#: ran 46 iterations where the last 20 added 3.5e-5 of θ; see bench/README.md for what the shorter window
+#: gives up (θ and the recovery and reproducibility benches).
+CMAES_PATIENCE = 5
+CMAES_MIN_STEP = 2.5e-4
+
 #: CMA-ES from the linear start: initial step as a fraction of each range, and per-parameter factors
 #: (a_r a_g a_b b_r b_g b_b rho_F). The linear start is close (measured: within 0.15 of the recovery
 #: tolerances); a normalized step of 0.01 costs θ 2-9e-4 in attenuation, 2e-3 in fog, 2-5e-2 in the
-#: background. With 0.1 for all (the former default) every sample was worse than the start for the first
-#: 35-52 iterations (0.03: 17-38), and after 100 iterations 3/4 trials were recovered; with these 4/4,
-#: the first improvement came at iteration 1-10.
-LINEAR_START_SIGMA0 = 0.01
+#: background. With 0.1 for all (an earlier default) every sample was worse than the start for the first
+#: 35-52 iterations (0.03: 17-38) on four 320x240 trials; with 0.01 the first improvement came at iteration
+#: 1-10. At 640x480 (the demo trial, K = 3) 0.01 still gave 8 iterations without any improvement (the first
+#: at iteration 8, when CMA-ES had shrunk its step to 0.0028); with 0.0025 the first came at iteration 2 and
+#: 59 % of the final gain by iteration 4 (bench/bench_fit_speed.py, bench/README.md).
+LINEAR_START_SIGMA0 = 0.0025
 LINEAR_START_STDS = (1.0, 1.0, 1.0, 0.25, 0.25, 0.25, 1.0)
 
 
@@ -242,6 +254,12 @@ class BackwardObjective:
     workers : int, optional
         Threads evaluating parts of a batch (default: :func:`uw_sil._shared.process.default_threads`).
         Results do not depend on it.
+    batch : int
+        Unused (kept for callers): candidates are simulated and scored one at a time, as planes
+        (:meth:`uw_sil.sim.optics.PreparedRender.planar`, :meth:`uw_sil.metrics.theta.ThetaReference.score_planar`).
+
+    Frames may be :class:`ReducedFitFrame` (:func:`reduce_frame`): the model is then area-exact at the
+    silhouettes and the candidates are not rounded to 8 bits (the reduced real frame is a block mean).
     """
 
     def __init__(self, frames: list, space: ParamSpace, channels: str = "HSV", fog: str = "exp2",
@@ -255,23 +273,30 @@ class BackwardObjective:
             raise ValueError("no frames to fit")
         self.space = space
         self.frames = frames
-        self.prepared = [PreparedRender(f.render.rgb, f.render.range, f.render.depth, fog=fog) for f in frames]
+        self.prepared = [PreparedRender(f.render.rgb, f.render.range, f.render.depth, fog=fog,
+                                        cover=getattr(f.render, "cover", None)) for f in frames]
         if hist_pixels not in HIST_PIXELS:
             raise ValueError(f"hist_pixels must be one of {HIST_PIXELS}, got {hist_pixels!r}")
         self.hist_pixels = hist_pixels
         # One set of θ references per worker thread (they reuse work buffers, so they are not shared).
         # FFTs, exp and most array work release the GIL: two threads on two cores give ~1.6-1.8x.
         self.workers = default_threads(workers)
-        self._refs = [[ThetaReference(f.image, channels=channels, hist_mask=_hist_masks(f, hist_pixels))
-                       for f in frames] for _ in range(self.workers)]
+        refs = [ThetaReference(f.image, channels=channels, hist_mask=_hist_masks(f, hist_pixels)) for f in frames]
+        self._refs = [refs] + [[r.fork() for r in refs] for _ in range(self.workers - 1)]
         self.references = self._refs[0]
         self._pool = None
         self.noise_sigma = [self._noise_sigma(f, sim_noise) for f in frames]
         self.noise = [NoiseField(f.image.shape, s, seed=seed + i) if np.any(s > 0) else None
                       for i, (f, s) in enumerate(zip(frames, self.noise_sigma))]
-        h, w = frames[0].image.shape[:2]
-        chunk = -(-max(1, int(batch)) // self.workers)
-        self._bufs = [np.empty((chunk, h, w, 3), dtype=np.float32) for _ in range(self.workers)]
+        # The inner loop works on planes (3, H * W); the same realization, rearranged (NoiseField.apply is
+        # elementwise). Reduced frames (ReducedFitFrame) are averages over blocks, not 8-bit values: their
+        # candidates are not rounded.
+        self._quantize = [not isinstance(f, ReducedFitFrame) for f in frames]
+        for nf in self.noise:
+            if nf is not None:
+                nf.field = np.ascontiguousarray(np.moveaxis(nf.field, -1, 0).reshape(nf.field.shape[-1], -1))
+        self._bufs = [[(np.empty((3, f.image.shape[0] * f.image.shape[1]), dtype=np.float32), prep.work_buffers())
+                       for f, prep in zip(frames, self.prepared)] for _ in range(self.workers)]
         self.n_calls = 0
 
     @staticmethod
@@ -283,7 +308,8 @@ class BackwardObjective:
                 return np.zeros(3)
             if sim_noise != "estimate":
                 raise ValueError(f"sim_noise must be 'estimate', 'none' or a number, got {sim_noise!r}")
-            water = frame.render.labels == 0
+            cover = getattr(frame.render, "cover", None)
+            water = frame.render.labels == 0 if cover is None else cover == 0
             return water_noise_sigma(frame.image, water)
         sigma = np.broadcast_to(np.asarray(sim_noise, dtype=float), (3,)).copy()
         if not np.all(np.isfinite(sigma)) or np.any(sigma < 0):
@@ -315,22 +341,77 @@ class BackwardObjective:
         return theta
 
     def _score_part(self, w: int, P: np.ndarray, idx: np.ndarray, acc: np.ndarray):
-        """θ summed over frames for candidates ``P[idx]``, with worker ``w``'s references and buffer."""
-        refs, bufw = self._refs[w], self._bufs[w]
-        for prep, ref, noise in zip(self.prepared, refs, self.noise):
-            for s in range(0, len(idx), len(bufw)):
-                sel = idx[s:s + len(bufw)]
-                buf = bufw[:len(sel)]
-                prep(P[sel], out=buf)
+        """θ summed over frames for candidates ``P[idx]``, with worker ``w``'s references and buffers."""
+        from ..sim.params import validate_rgb_params
+
+        Pw = validate_rgb_params(P[idx]).astype(np.float32)
+        for prep, ref, noise, (buf, work), quantize in zip(self.prepared, self._refs[w], self.noise, self._bufs[w],
+                                                            self._quantize):
+            for j, p in zip(idx, Pw):
+                prep.planar(p, out=buf, work=work)
                 buf *= 255.0
                 if noise is not None:
-                    noise.apply(buf)
-                acc[sel] += ref.score(buf)
+                    noise.apply(buf, quantize=quantize)
+                acc[j] += ref.score_planar(buf)
 
     def close(self):
         if self._pool is not None:
             self._pool.shutdown()
             self._pool = None
+
+
+@dataclass
+class ReducedRender:
+    """A render box-downsampled by ``factor`` (:func:`reduce_frame`): ``rgb``, ``range`` and ``depth`` averaged
+    over the model pixels of each block (``inf`` where none), ``cover`` the block's fraction on the model,
+    ``labels`` the label of the block's centre pixel where ``cover >= 0.5``, else 0."""
+
+    rgb: np.ndarray
+    range: np.ndarray
+    depth: np.ndarray
+    labels: np.ndarray
+    cover: np.ndarray
+
+
+@dataclass
+class ReducedFitFrame(FitFrame):
+    """A :class:`FitFrame` box-downsampled by ``factor``: ``image`` is float32 (block means, 0..255),
+    ``render`` a :class:`ReducedRender`."""
+
+    factor: int = 1
+
+
+def reduce_frame(frame: FitFrame, factor: int) -> FitFrame:
+    """The frame and its render averaged over ``factor x factor`` blocks (the coarse stage of :func:`fit_frames`).
+
+    The underwater model on such a block, ``b + cover * T * (i - b)`` (:class:`uw_sil.sim.optics.PreparedRender`
+    with ``cover``), is the block average of the full-resolution model where the transmission is constant over
+    the block; rendering at the reduced size instead would alias the silhouettes while the real frame's are
+    area-averaged.
+    """
+    from .residuals import box_down
+
+    f = int(factor)
+    if f <= 1:
+        return frame
+    rr = frame.render
+    hit = np.isfinite(rr.range) & np.isfinite(rr.depth)
+    cover = box_down(hit, f)
+    safe = np.maximum(cover, np.float32(1e-6))
+    rgb = box_down(np.where(hit[..., None], rr.rgb, 0.0), f) / safe[..., None]
+    rng = box_down(np.where(hit, rr.range, 0.0), f) / safe
+    dep = box_down(np.where(hit, rr.depth, 0.0), f) / safe
+    none = cover <= 0
+    rgb[none] = 0.0
+    rng[none] = np.inf
+    dep[none] = np.inf
+    h, w = cover.shape
+    c = f // 2
+    labels = np.where(cover >= 0.5, rr.labels[c:h * f:f, c:w * f:f][:h, :w], 0).astype(np.uint8)
+    render = ReducedRender(np.clip(rgb, 0.0, 1.0).astype(np.float32), rng.astype(np.float32),
+                           dep.astype(np.float32), labels, np.clip(cover, 0.0, 1.0).astype(np.float32))
+    return ReducedFitFrame(frame.index, frame.stamp_ns, box_down(frame.image, f), render, frame.coverage,
+                           frame.image_index, frame.pose_info, factor=f)
 
 
 @dataclass
@@ -398,7 +479,7 @@ def fit_frames(frames: list, method: str = "pso", color_model: str = "rgb", chan
                fog: str = "exp2", hist_pixels: str = "split", sim_noise="estimate", lower=None, upper=None,
                seed: Optional[int] = 0,
                start: Optional[UnderwaterParams] = None, x0="linear", progress: bool = False,
-               callback: Optional[Callable] = None, skipped=(), tol: float = FIT_TOL, patience: int = FIT_PATIENCE,
+               callback: Optional[Callable] = None, skipped=(), tol: float = FIT_TOL, patience: Optional[int] = None,
                **optim_options) -> FitResult:
     """Fit the 7 parameters to already selected frames.
 
@@ -414,8 +495,11 @@ def fit_frames(frames: list, method: str = "pso", color_model: str = "rgb", chan
 
     The fit stops on convergence, when the best θ gained no more than ``tol`` over the last ``patience``
     iterations (:func:`uw_sil.fit.optimize.optimize`; ``stop_reason`` ``"converged"``), or after ``max_iter``
-    iterations (default 100). ``patience=0`` turns that stop off; ``method="pso", x0=None, patience=0`` is
-    the paper's PSO exactly (a random swarm of 20, up to 100 iterations).
+    iterations (default 100). ``patience=None`` (default) is :data:`CMAES_PATIENCE` for CMA-ES from the
+    linear start, which then also stops when its step has collapsed (``min_step`` :data:`CMAES_MIN_STEP`,
+    ``stop_reason`` ``"step"``), else :data:`FIT_PATIENCE`. ``patience=0`` turns that stop off;
+    ``method="pso", x0=None, patience=0`` is the paper's PSO exactly (a random swarm of 20, up to 100
+    iterations).
 
     For PSO a start is one particle of the otherwise random initial swarm. Measured on a 640x480
     synthetic trial (K = 3, 4.0/3.3/1.9 m), CMA-ES from the centre had θ 0.862 after 100 iterations
@@ -437,20 +521,35 @@ def fit_frames(frames: list, method: str = "pso", color_model: str = "rgb", chan
             x0 = water_start(frames, space)
         elif x0 == "linear":
             x0 = linear_start(frames, space, fog=fog)
-            if method == "cmaes" and "sigma0" not in optim_options:
-                optim_options["sigma0"] = LINEAR_START_SIGMA0
-                cma_options = dict(optim_options.get("cma_options") or {})
-                cma_options.setdefault("CMA_stds", list(LINEAR_START_STDS))
-                optim_options["cma_options"] = cma_options
+            if method == "cmaes":
+                if "sigma0" not in optim_options:
+                    optim_options["sigma0"] = LINEAR_START_SIGMA0
+                    cma_options = dict(optim_options.get("cma_options") or {})
+                    cma_options.setdefault("CMA_stds", list(LINEAR_START_STDS))
+                    optim_options["cma_options"] = cma_options
+                optim_options.setdefault("min_step", CMAES_MIN_STEP)
+                if patience is None:
+                    patience = CMAES_PATIENCE
         else:
             raise ValueError(f"x0 must be 'linear', 'water', None or a vector, got {x0!r}")
+    if patience is None:
+        patience = FIT_PATIENCE
     # θ where the search starts: x0, or the centre of the bounds (CMA-ES' first mean; PSO: a random swarm)
     x_opt_start = np.asarray(x0, dtype=float) if x0 is not None else \
         ((space.lower + space.upper) / 2 if method == "cmaes" else None)
-    theta_x0 = None if x_opt_start is None else float(obj(x_opt_start[None])[0])
     try:
         res = optimize(obj, space.lower, space.upper, method=method, seed=seed, progress=progress,
                        callback=callback, names=space.names, x0=x0, tol=tol, patience=patience, **optim_options)
+        theta_x0 = None
+        if x_opt_start is not None:
+            # CMA-ES evaluates its start first (injected): the same point gives the same θ, bit for bit
+            ev = res.evaluations
+            if method == "cmaes" and len(ev) and ev.x[0].tobytes() == x_opt_start.tobytes() and np.isfinite(ev.f[0]):
+                theta_x0 = float(ev.f[0])
+            elif x_opt_start.tobytes() == x_start.tobytes():
+                theta_x0 = theta_start
+            else:
+                theta_x0 = float(obj(x_opt_start[None])[0])
     finally:
         obj.close()
     params = UnderwaterParams.from_vector(np.clip(space.to_rgb(res.x_best), 0, None), model="rgb") \

@@ -38,6 +38,7 @@ def run_cmaes(rec, seed, popsize, max_iter, opts, u0):
         # The mean itself is never sampled; inject it so that the first generation evaluates x0
         # (a good start must not be lost: the result is never worse than x0).
         es.inject([u0[0]], force=True)
+    sigmas = []     # largest coordinate-wise standard deviation of the search distribution, per generation
     while True:
         sols = es.ask()
         f = rec.evaluate(np.array(sols, dtype=float))
@@ -50,7 +51,11 @@ def run_cmaes(rec, seed, popsize, max_iter, opts, u0):
             spread = float(good.max() - good.min()) if good.size else 0.0
             loss[bad] = worst + 1.0 + spread
         es.tell(sols, loss.tolist())
+        sigmas.append(float(np.max(es.stds)))
         if rec.stopped:
+            break
+        if opts.get("min_step") and sigmas[-1] < opts["min_step"]:
+            rec.stop_reason = "step"    # the search distribution has collapsed: no coordinate moves by more
             break
         if rec.iteration >= max_iter:
             rec.stop_reason = "max_iter"
@@ -60,4 +65,5 @@ def run_cmaes(rec, seed, popsize, max_iter, opts, u0):
             rec.stop_reason = "cma:" + ",".join(sorted(str(k) for k in stop))
             break
     return {"cma_version": cma.__version__, "popsize": int(es.popsize),
-            "cma_iterations": int(es.countiter), "final_sigma": float(es.sigma)}
+            "cma_iterations": int(es.countiter), "final_sigma": float(es.sigma),
+            "step_history": sigmas}

@@ -107,7 +107,7 @@ PSO_PAPER_SETTINGS = MappingProxyType(
 CMAES_DEFAULT_SIGMA0 = 0.25
 
 _PSO_OPTIONS = {"minstep": 1e-8, "minfunc": 1e-8}
-_CMAES_OPTIONS = {"sigma0": CMAES_DEFAULT_SIGMA0, "cma_options": None}
+_CMAES_OPTIONS = {"sigma0": CMAES_DEFAULT_SIGMA0, "cma_options": None, "min_step": 0.0}
 _CMA_RESERVED = ("bounds", "seed", "randn", "popsize")
 
 
@@ -179,7 +179,8 @@ class OptimResult:
     evals_to_target : int or None
         Number of evaluations up to and including the first one with value ``>= target``.
     stop_reason : str
-        ``"max_iter"``, ``"target"``, ``"callback"``, ``"converged"`` (see ``patience``),
+        ``"max_iter"``, ``"target"``, ``"callback"``, ``"converged"`` (see ``patience``), ``"step"``
+        (CMA-ES' ``min_step``),
         ``"minfunc"`` / ``"minstep"`` (pyswarm), or ``"cma:<criteria>"`` (cma's own termination).
     wall_time_s : float
         Wall-clock duration of the run.
@@ -448,6 +449,7 @@ def _method_options(method: str, options: dict) -> dict:
         out["minfunc"] = _check_float("minfunc", out["minfunc"], 0.0)
     else:
         out["sigma0"] = _check_float("sigma0", out["sigma0"], 0.0, strict=True)
+        out["min_step"] = _check_float("min_step", out["min_step"], 0.0)
         cma_opts = out["cma_options"]
         if cma_opts is None:
             cma_opts = {}
@@ -622,7 +624,9 @@ def optimize(
         PSO: ``minstep`` and ``minfunc`` (pyswarm's stopping thresholds, default 1e-8, on the
         normalized box and on the objective). CMA-ES: ``sigma0`` (initial step size as a
         fraction of each range, default 0.25), ``cma_options`` (dict passed to
-        ``cma.CMAEvolutionStrategy``, e.g. ``{"tolfun": 0}``).
+        ``cma.CMAEvolutionStrategy``, e.g. ``{"tolfun": 0}``), ``min_step`` (stop with
+        ``stop_reason "step"`` once the search distribution's largest coordinate standard deviation, in
+        the box normalized to [0, 1], is below it: the search has collapsed; default 0, off).
 
     Returns
     -------
@@ -699,7 +703,7 @@ def optimize(
                                         and max_iter == PSO_PAPER_SETTINGS["max_iter"]),
                         backend="pyswarm")
     else:
-        settings.update(swarm_size=s, sigma0=opts["sigma0"], cma_options=opts["cma_options"],
+        settings.update(swarm_size=s, sigma0=opts["sigma0"], cma_options=opts["cma_options"], min_step=opts["min_step"],
                         x0="given" if u0 is not None else "centre of the bounds", backend="cma")
 
     bar = None

@@ -38,6 +38,7 @@ from .._shared.checks import check_image, check_mask
 __all__ = [
     "DEFAULT_BINS",
     "HistogramReference",
+    "SplitHistogramReference",
     "bhattacharyya_distance",
     "hsv_histogram_similarity",
     "rgb_to_hsv",
@@ -235,6 +236,7 @@ class HistogramReference:
             self._sel = np.flatnonzero(m)
             self._region = region.ravel()[self._sel]
         n_reg = regions * regions
+        self._slots = n_reg     # rows of the (slot, bin) histograms: the regions
         counts = np.bincount(self._region, minlength=n_reg).astype(np.float64)
         self._valid = counts > 0
         self._inv_counts = np.divide(1.0, counts, out=np.zeros_like(counts), where=self._valid)
@@ -290,7 +292,7 @@ class HistogramReference:
         np.minimum(d, b, out=d)
         np.subtract(v, d, out=d)  # max - min
         f32 = np.float32
-        n_reg = self.regions * self.regions
+        n_reg = self._slots
         out = {}
         for c in self.channels:
             nb = self.bins[c]
@@ -365,6 +367,66 @@ class HistogramReference:
         if batch.shape[1:] != self.shape:
             raise ValueError(f"candidates have image shape {batch.shape[1:]}, reference has {self.shape}")
         return np.array([self._score_one(c) for c in batch])
+
+
+class SplitHistogramReference:
+    """theta_2 over several disjoint pixel sets of one image (e.g. the panel and the water), in one pass.
+
+    The same values, bit for bit, as one :class:`HistogramReference` per mask (``parts``), whose histograms
+    take each set's pixels out of the image first: here the HSV bins are computed once over all pixels and
+    counted into one histogram with a (set, region) row per pixel (pixels of no set into a spare row).
+
+    Parameters
+    ----------
+    reference : ndarray, shape (H, W, 3)
+    masks : sequence of ndarray of bool, shape (H, W)
+        Disjoint pixel sets (ValueError if two share a pixel).
+    channels, regions, bins : as :class:`HistogramReference`.
+    """
+
+    def __init__(self, reference, masks, *, channels: str = "HSV", regions: int = 10, bins=None):
+        masks = list(masks)
+        if not masks:
+            raise ValueError("masks is empty")
+        self.parts = [HistogramReference(reference, channels=channels, regions=regions, bins=bins, mask=m)
+                      for m in masks]
+        self._all = HistogramReference(reference, channels=channels, regions=regions, bins=bins)
+        self.channels, self.bins, self.shape = self._all.channels, self._all.bins, self._all.shape
+        n_reg = self._all.regions ** 2
+        k_none = len(masks)
+        owner = np.full(self.shape[0] * self.shape[1], k_none, dtype=np.intp)
+        for k, part in enumerate(self.parts):
+            sel = np.arange(owner.size) if part._sel is None else part._sel
+            if np.any(owner[sel] != k_none):
+                raise ValueError("the masks overlap")
+            owner[sel] = k
+        self._n_reg = n_reg
+        self._all._slots = (k_none + 1) * n_reg
+        slot = owner * n_reg + self._all._region
+        self._all._offsets = {c: slot * self.bins[c] for c in self.channels}
+
+    def to_planar(self, img: np.ndarray) -> np.ndarray:
+        """See :meth:`HistogramReference.to_planar`."""
+        return self._all.to_planar(img)
+
+    def scores_planar(self, planes: np.ndarray) -> list:
+        """theta_2 of each set for one validated candidate given as planar float32 ``(3, H * W)``."""
+        hist = self._all._histograms_planar(planes)
+        n = self._n_reg
+        out = []
+        for k, part in enumerate(self.parts):
+            d = part._distances({c: h[k * n:(k + 1) * n] for c, h in hist.items()})[part._valid]
+            out.append(1.0 - float(np.median(d)))
+        return out
+
+    def fork(self) -> "SplitHistogramReference":
+        """A copy with its own work buffers (for another thread), sharing the reference's arrays."""
+        import copy
+
+        twin = copy.copy(self)
+        twin._all = copy.copy(self._all)
+        twin._all._ws = {}
+        return twin
 
 
 def hsv_histogram_similarity(ref, cand, channels: str = "HSV", regions: int = 10, bins=None, mask=None) -> float:

@@ -26,7 +26,7 @@ import numpy as np
 
 from .._shared.checks import check_image, check_values
 from .fsim import FSIMReference
-from .histsim import HistogramReference
+from .histsim import HistogramReference, SplitHistogramReference
 
 __all__ = ["ThetaReference", "ThetaScores", "mean_theta"]
 
@@ -111,7 +111,32 @@ class ThetaReference:
         self._hists = [HistogramReference(reference, channels=channels, regions=regions, bins=bins, mask=m)
                        for m in hist_masks]
         self._hist = self._hists[0]
+        # Several disjoint masks (the backward fit's panel / water): one HSV pass over all pixels for all of them.
+        self._split = None
+        if len(hist_masks) > 1 and all(m is not None for m in hist_masks):
+            try:
+                self._split = SplitHistogramReference(reference, hist_masks, channels=channels, regions=regions,
+                                                      bins=bins)
+            except ValueError:      # overlapping masks: one pass per mask
+                self._split = None
         self._fsim_planar_shape = (3,) + reference.shape[:2]
+
+    def fork(self) -> "ThetaReference":
+        """A copy for another thread: shares every cached reference array (read-only), has its own work buffers.
+
+        Scores are those of this instance, bit for bit; building it costs no reference work.
+        """
+        import copy
+
+        twin = copy.copy(self)
+        twin._fsim = copy.copy(self._fsim)
+        twin._fsim._buf = None
+        twin._hists = [copy.copy(h) for h in self._hists]
+        for h in twin._hists:
+            h._ws = {}
+        twin._hist = twin._hists[0]
+        twin._split = None if self._split is None else self._split.fork()
+        return twin
 
     @property
     def channels(self) -> str:
@@ -161,12 +186,32 @@ class ThetaReference:
                 t1[k] = self._fsim.score_planar(planes.reshape(self._fsim_planar_shape))[1]
             else:
                 t1[k] = self._fsim.score_planar(self._fsim.to_planar(img))[1]
-            t2[k] = sum(h.score_planar(planes) for h in self._hists) / len(self._hists)
+            t2[k] = self._theta2(planes)
         return ThetaScores((t1 + t2) / 2.0, t1, t2)
 
     def score(self, candidates) -> np.ndarray:
         """theta of each candidate, shape (N,) (see :meth:`evaluate`)."""
         return self.evaluate(candidates).theta
+
+    def score_planar(self, planes: np.ndarray) -> float:
+        """theta of one candidate given as planar float32 ``(3, H * W)`` in 0..255 (an optimizer's inner
+        loop: no interleaved copy). The same value as :meth:`score` of the same image, bit for bit."""
+        if not isinstance(planes, np.ndarray) or planes.dtype != np.float32 \
+                or planes.shape != (3, self.shape[0] * self.shape[1]) or not planes.flags.c_contiguous:
+            raise ValueError(f"planes must be a C-contiguous float32 array of shape "
+                             f"(3, {self.shape[0] * self.shape[1]})")
+        check_values(planes, "candidate")  # finite, in 0..255
+        if self._fsim.dtype == np.float32:
+            t1 = self._fsim.score_planar(planes.reshape(self._fsim_planar_shape))[1]
+        else:
+            t1 = self._fsim.score_planar(planes.reshape(self._fsim_planar_shape).astype(self._fsim.dtype))[1]
+        return (t1 + self._theta2(planes)) / 2.0
+
+    def _theta2(self, planes: np.ndarray) -> float:
+        """theta_2 of planar float32 ``(3, H * W)``: the mean over the histogram masks."""
+        if self._split is not None:
+            return sum(self._split.scores_planar(planes)) / len(self._hists)
+        return sum(h.score_planar(planes) for h in self._hists) / len(self._hists)
 
 
 def mean_theta(references: Sequence, candidate_stacks: Sequence, **kwargs) -> np.ndarray:

@@ -152,31 +152,82 @@ def degrade(rgb, range_m, depth_m, params, fog: str = "exp2") -> np.ndarray:
 class PreparedRender:
     """A clean render cached for applying many parameter sets quickly (the optimizer's inner loop).
 
-    Computation runs per channel on contiguous (H, W) planes (about 4x faster than broadcasting
-    over a trailing axis of 3); water pixels get transmission 0 through a mask, hence ``b``.
+    Computation runs per channel on contiguous planes, and only on the pixels where the model is hit
+    (water pixels are ``b_c``, exactly what the full-plane arithmetic gives them: transmission 0).
 
     Parameters
     ----------
     rgb, range_m, depth_m, fog : as in :func:`degrade`.
+    cover : ndarray (H, W), optional
+        Fraction of each pixel on the model, for box-downsampled renders whose ``rgb``, range and depth
+        are averages over the model part of each block: ``I_c = b_c + cover * T_c * (i_c - b_c)``, the
+        block average of the full-resolution model when ``T_c`` is constant over the block. Default: 1
+        where the model is hit (finite range and depth), else 0.
     """
 
-    def __init__(self, rgb, range_m, depth_m, fog: str = "exp2"):
+    def __init__(self, rgb, range_m, depth_m, fog: str = "exp2", cover=None):
         rgb, range_m, depth_m = _check_render(rgb, range_m, depth_m)
         if fog not in FOG_MODES:
             raise ValueError(f"unknown fog mode {fog!r}; expected one of {FOG_MODES}")
         self.shape = rgb.shape
         self.fog = fog
         hit = np.isfinite(range_m) & np.isfinite(depth_m)
+        if cover is not None:
+            cover = np.asarray(cover, dtype=np.float32)
+            if cover.shape != hit.shape or not np.all((cover >= 0) & (cover <= 1)):
+                raise ValueError(f"cover must be ({hit.shape[0]}, {hit.shape[1]}) fractions in [0, 1]")
+            hit = hit & (cover > 0)
         self.hit = hit
-        self.mask = hit.astype(np.float32)
+        self.mask = hit.astype(np.float32) if cover is None else np.where(hit, cover, np.float32(0.0))
         self.r = np.where(hit, range_m, 0).astype(np.float32)
         z = np.where(hit, depth_m, 0).astype(np.float32)
         self.zf = z * z if fog == "exp2" else z                      # fog exponent grows with this
         self.planes = np.ascontiguousarray(np.moveaxis(rgb.astype(np.float32), 2, 0))  # (3, H, W)
+        # the hit pixels alone, for the inner loop (water pixels are b_c)
+        self._idx = np.flatnonzero(hit)
+        self._r = self.r.ravel()[self._idx]
+        self._zf = self.zf.ravel()[self._idx]
+        self._cover = None if cover is None or np.all(self.mask.ravel()[self._idx] == 1) \
+            else self.mask.ravel()[self._idx]
+        self._i = self.planes.reshape(3, -1)[:, self._idx]
 
     @property
     def hit_fraction(self) -> float:
         return float(self.hit.mean())
+
+    def work_buffers(self) -> tuple:
+        """Work buffers for :meth:`planar`; one set per thread (a PreparedRender may be shared by threads)."""
+        n = self._idx.size
+        return np.empty(n, np.float32), np.empty(n, np.float32), np.empty(n, np.float32)
+
+    def planar(self, params, out=None, work=None) -> np.ndarray:
+        """Degraded image for one rgb parameter vector (7,), as planes (3, H * W) float32 in [0, 1].
+
+        The parameters are used as float32 and not validated (the batched :meth:`__call__` validates).
+        ``work``: buffers of :meth:`work_buffers` to reuse (default: new ones).
+        """
+        a_r, a_g, a_b, b_r, b_g, b_b, rho = np.asarray(params, dtype=np.float32)
+        h, w, _ = self.shape
+        if out is None:
+            out = np.empty((3, h * w), dtype=np.float32)
+        t, fz, d = self.work_buffers() if work is None else work
+        if self.fog == "none" or rho == 0:
+            fz.fill(0.0)
+        else:
+            np.multiply(self._zf, rho * rho if self.fog == "exp2" else rho, out=fz)
+        for c, (a, b) in enumerate(((a_r, b_r), (a_g, b_g), (a_b, b_b))):
+            np.multiply(self._r, a, out=t)              # optical thickness r a_c + fog term
+            t += fz
+            np.negative(t, out=t)
+            np.exp(t, out=t)                            # T_c = e_c(r) f(z)
+            if self._cover is not None:
+                t *= self._cover                        # area-exact: the block's share on the model
+            np.subtract(self._i[c], b, out=d)
+            t *= d
+            t += b                                      # I_c = b_c + T_c (i_c - b_c): paper Eq. 1 with fog
+            out[c].fill(b)                              # no hit: T = 0
+            out[c, self._idx] = t
+        return out
 
     def __call__(self, params, out=None) -> np.ndarray:
         """Degraded image(s) for (7,) or (N, 7) rgb parameter vectors: (H, W, 3) or (N, H, W, 3) float32."""
@@ -188,22 +239,10 @@ class PreparedRender:
             out = np.empty((p.shape[0], h, w, 3), dtype=np.float32)
         elif single and out.ndim == 3:
             out = out[None]                             # a view: results land in the caller's array
-        t = np.empty((h, w), dtype=np.float32)
-        fz = np.empty((h, w), dtype=np.float32)
-        for k, (a_r, a_g, a_b, b_r, b_g, b_b, rho) in enumerate(p):
-            if self.fog == "none" or rho == 0:
-                fz.fill(0.0)
-            else:
-                np.multiply(self.zf, rho * rho if self.fog == "exp2" else rho, out=fz)
-            for c, (a, b) in enumerate(((a_r, b_r), (a_g, b_g), (a_b, b_b))):
-                np.multiply(self.r, a, out=t)           # optical thickness r a_c + fog term
-                t += fz
-                np.negative(t, out=t)
-                np.exp(t, out=t)                        # T_c = e_c(r) f(z)
-                t *= self.mask                          # no hit: T = 0
-                t *= self.planes[c] - b
-                t += b                                  # I_c = b_c + T_c (i_c - b_c): paper Eq. 1 with fog
-                out[k, :, :, c] = t
+        planes = np.empty((3, h * w), dtype=np.float32)
+        for k in range(p.shape[0]):
+            self.planar(p[k], out=planes)
+            out[k] = np.moveaxis(planes.reshape(3, h, w), 0, -1)
         return out[0] if single else out
 
 
