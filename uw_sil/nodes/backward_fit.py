@@ -156,10 +156,14 @@ class BackwardFitNode(Node):
         reliability = (ReliabilityPolicy.RELIABLE if self.get_parameter("reliable_input").value
                        else qos_profile_sensor_data.reliability)
         sensor = QoSProfile(depth=30, reliability=reliability, durability=qos_profile_sensor_data.durability)
+        # Poses (reliable) queue as deep as the images: the first frame's render (a new OpenGL context at the
+        # camera's size) took up to 1.2 s under load, and with a queue of 10 the 11th pose arriving meanwhile
+        # pushed out pose #1, so image #1 found no partner and was dropped.
+        poses = QoSProfile(depth=sensor.depth, reliability=ReliabilityPolicy.RELIABLE)
         self.subs = [
             self.create_subscription(Image, "camera/image_raw", lambda m: self._add(0, m), sensor),
             self.create_subscription(CameraInfo, "camera/camera_info", lambda m: self._add(1, m), sensor),
-            self.create_subscription(PoseStamped, "panel/pose", lambda m: self._add(2, m), 10)]
+            self.create_subscription(PoseStamped, "panel/pose", lambda m: self._add(2, m), poses)]
         self.create_service(Trigger, "~/start", self._on_start)
         self._last_progress = None
         self._collect_start = None   # monotonic time the current collection started
@@ -247,10 +251,13 @@ class BackwardFitNode(Node):
         return resp
 
     def _add(self, stream: int, msg):
-        if self.selector is not None:
-            self._last_input = time.monotonic()
         for match in self.sync.add(stream, _stamp_ns(msg.header), msg):
             self._offer(match)
+        # idle time counts from the end of the callback: while a frame renders (the first one took over 3 s
+        # under load) the input waits in the queues, and the idle timer, served before them, would take the
+        # node's own stall for the end of the bag
+        if self.selector is not None:
+            self._last_input = time.monotonic()
 
     def _offer(self, match):
         sel = self.selector
