@@ -334,15 +334,17 @@ def test_backward_fit_keeps_every_frame_of_a_replay_through_a_stall(ros, trial):
     it had, the replay's frames still queued, taking its own stall for the end of the bag.
 
     Here the node's first frame lasts as long as the rest of the replay (frames 1-11, each acknowledged by the
-    node's readers) plus twice idle_timeout; the time.sleep below stands for that slow render, it is not a
-    wait for anything. Then every frame must be paired, and the collection still be running. The input is
-    read reliably, so what could be lost is only what the node's queues cannot hold.
+    node's readers) plus more than idle_timeout (the graphs' 3 s: a shorter one would make the test fail when
+    the loaded machine leaves the node without CPU for that long between two callbacks, which is not the
+    fault tested here); the time.sleep below stands for that slow render, it is not a wait for anything.
+    Then every frame must be paired, and the collection still be running. The input is read reliably, so
+    what could be lost is only what the node's queues cannot hold.
     """
     from uw_sil.nodes.backward_fit import BackwardFitNode
     from uw_sil.nodes.bag_play import BagPlayNode
+    from uw_sil.nodes.graph import IDLE_TIMEOUT as idle
 
     topics = ["/camera/image_raw", "/camera/camera_info", "/panel/pose"]
-    idle = 0.3
     fit = BackwardFitNode(context=ros, parameter_overrides=[
         Parameter("frames", value=13), Parameter("stride", value=1), Parameter("reliable_input", value=True),
         Parameter("idle_timeout", value=idle)])
@@ -366,7 +368,7 @@ def test_backward_fit_keeps_every_frame_of_a_replay_through_a_stall(ros, trial):
         if not stalls:
             t0 = time.monotonic()
             publish(messages[3:])             # frames 1-11 arrive while the node is busy with frame 0
-            time.sleep(2 * idle)              # the rest of the slow first render (no wait for anything)
+            time.sleep(idle + 0.5)            # the rest of the slow first render (no wait for anything)
             stalls.append(time.monotonic() - t0)
         return real_offer(sample)
     sel.offer = slow_offer
