@@ -56,6 +56,8 @@ setup(
             "ros-kilted-rcl-interfaces",
             "ros-kilted-std-msgs",
             "ros-kilted-rosgraph-msgs",
+            # /diagnostics of backward_fit's live diagnosis
+            "ros-kilted-diagnostic-msgs",
         ],
         # `uw-sil batch --executor dask://HOST:PORT`
         "dask": ["dask[distributed]>=2024.1"],
@@ -74,6 +76,7 @@ setup(
             "backward_fit = uw_sil.nodes.entry:backward_fit",
             "bag_play = uw_sil.nodes.entry:bag_play",
             "enhancer = uw_sil.nodes.entry:enhancer",
+            "panel_pose = uw_sil.nodes.entry:panel_pose",
         ],
     },
 )

@@ -309,3 +309,34 @@ def test_noise_level_is_never_below_quantization():
     s1, s2 = noise_sigmas([SimpleNamespace(image=img, water=water, factor=1),
                            SimpleNamespace(image=img, water=water, factor=4)])
     assert np.allclose(s1, QUANTIZATION_SIGMA) and np.allclose(s2, QUANTIZATION_SIGMA / 4)
+
+
+def test_residual_evidence_accepts_what_theta_cannot_see():
+    """A θ-kind candidate is accepted when held-out θ does not rise but its least-squares fit lowers the
+    held-out mean squared residual frame by frame beyond the residual margin (the lamp-lit deep sea, where θ
+    is blind to a smooth brightness change); not when the reduction is within the margin or absent."""
+    from uw_sil.fit.judges.base import (MIN_RESIDUAL_MARGIN, Current, Judge, Refit, margin_for,
+                                        residual_improvement)
+
+    cur = Current(effects=(), values={}, base=np.zeros(7), theta_fit=0.8, sel_pf=np.full(4, 0.80),
+                  ls_sel_E=np.array([0.3, 0.2, 4.7, 76.9]))
+
+    def refit(E, theta=0.80):
+        return Refit(effect="x", effects=("x",), x=np.zeros(8), params={}, theta_fit=0.8,
+                     sel_pf=np.full(4, theta), extra={} if E is None else {"ls_sel_E": np.asarray(E, float)})
+
+    j = Judge()
+    strong = refit([0.14, 0.13, 1.6, 25.5])                      # lamps on a physically lit dive: -35 .. -67 %
+    imp = residual_improvement(cur, strong)
+    assert np.allclose(imp, 1 - np.array([0.14, 0.13, 1.6, 25.5]) / cur.ls_sel_E)
+    rm = margin_for(imp, 14, floor=MIN_RESIDUAL_MARGIN)
+    assert j.accept(strong, cur, 0.003, rm) == (True, pytest.approx(np.mean(imp) / rm), "residual")
+    weak = refit(cur.ls_sel_E * 0.99)                            # 1 % less: within the floor
+    assert j.accept(weak, cur, 0.003, margin_for(residual_improvement(cur, weak), 14, floor=MIN_RESIDUAL_MARGIN))[0] is False
+    noisy = refit(cur.ls_sel_E * np.array([0.5, 1.5, 0.6, 1.4]))    # mean 0 % with a large spread
+    assert j.accept(noisy, cur, 0.003, margin_for(residual_improvement(cur, noisy), 14,
+                                                  floor=MIN_RESIDUAL_MARGIN))[0] is False
+    assert residual_improvement(cur, refit(None)) is None
+    assert j.accept(refit(None), cur, 0.003, None)[0] is False
+    assert j.accept(refit(None, theta=0.81), cur, 0.003, None)[:1] == (True,)
+    assert j.accept(refit(None, theta=0.81), cur, 0.003, None)[2] == "theta"

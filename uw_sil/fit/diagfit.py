@@ -361,6 +361,18 @@ class EffectModel:
         return {"base": {k: float(v) for k, v in zip(RGB_NAMES, base)}, "effects": eff}
 
 
+def residual_energy(model, X) -> np.ndarray:
+    """Mean squared residual (grey levels², every pixel, all channels) of parameter vectors ``X`` (N, d) of
+    ``model`` on its frames: (N, K), the quantity :func:`ls_fit` minimizes and the held-out residual evidence
+    of :mod:`uw_sil.fit.judges` compares (other frames: ``model.like(rframes)``)."""
+    X = np.atleast_2d(np.asarray(X, float))
+    out = np.zeros((len(X), len(model.rframes)))
+    for k, rf in enumerate(model.rframes):
+        sims = model.simulate(k, X) * 255.0
+        out[:, k] = ((sims - rf.image[None]) ** 2).mean(axis=(1, 2, 3))
+    return out
+
+
 def ls_fit(model: "EffectModel", x0, stride: int = 2, max_nfev: int = 12) -> np.ndarray:
     """Least-squares fit (grey levels, every ``stride``-th pixel) of a candidate model to its frames, from x0."""
     from scipy.optimize import least_squares

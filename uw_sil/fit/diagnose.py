@@ -217,6 +217,9 @@ PATIENCE = 6
 #: Candidates carried into the rounds after the first: those that raised held-out θ in the first round,
 #: best first (the first round refits every effect).
 LATER_CANDIDATES = 3
+#: Least-squares iterations of the current model's fit, the reference of the held-out residual criterion
+#: (the candidates' least-squares fits start from it with their effect neutral, and from their own starts).
+LS_BASE_NFEV = 30
 #: CMA-ES iterations of the candidates' first, cheap refit in each round (after their least-squares start);
 #: the round's winner is then refitted with the base fit's full budget from that point.
 CHEAP_ITER = 6
@@ -240,13 +243,18 @@ def base_doubts(base: dict) -> list:
             f"green 0.07-0.2, blue 0.03-0.15 /m): the base model absorbs physics it lacks"]
 
 
-def _candidate_row(rnd: int, current, e: str, r, margin: float, ok: bool, strength: float) -> dict:
+def _candidate_row(rnd: int, current, e: str, r, margin: float, ok: bool, strength: float, criterion: str,
+                   imp=None, res_margin=None) -> dict:
     gain_pf = r.sel_pf - current.sel_pf
     row = {"round": rnd, "model": current.name, "effect": e, "theta_train": r.theta_fit,
            "theta_heldout": float(np.mean(r.sel_pf)), "delta_heldout": float(np.mean(gain_pf)),
            "delta_heldout_per_frame": gain_pf.tolist(), "margin": margin, "accepted": bool(ok),
-           "strength": float(strength), "params": _effect_flat(r.params, [e]),
+           "criterion": criterion, "strength": float(strength), "params": _effect_flat(r.params, [e]),
            "kept_current_optimum": bool(r.started_at_current)}
+    if imp is not None:
+        row["heldout_residual"] = {"improvement": float(np.mean(imp)), "per_frame_improvement": np.asarray(imp).tolist(),
+                                   "margin": res_margin, "current": float(np.mean(current.ls_sel_E)),
+                                   "candidate": float(np.mean(r.extra["ls_sel_E"]))}
     if r.statistic is not None:
         row["heldout_statistic"] = r.statistic
     if r.extra:
@@ -279,7 +287,7 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
     from ..sim.params import ParamSpace
     from .backward import linear_start
     from .judges import JUDGES, Current, Job, margin_for
-    from .judges.base import gain_words, with_effect
+    from .judges.base import MIN_RESIDUAL_MARGIN, current_ls, gain_words, residual_improvement, with_effect
     from .residuals import added_surface
     from .screening import screen_proxies
     from .signatures import SignatureContext, run_signatures
@@ -296,7 +304,7 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
     R_hi = {id(f): reduce_frame(f, f_hi) for f in frames}
     R_lo = {id(f): reduce_frame(f, f_lo) for f in frames}
     f_ls = max(f_lo, reduction_factor(W, 80))
-    R_ls = {id(f): reduce_frame(f, f_ls) for f in fit_f}
+    R_ls = {id(f): reduce_frame(f, f_ls) for f in frames}
     rfit = [R_hi[id(f)] for f in fit_f]
     nfit = noise_sigmas(rfit)
 
@@ -330,7 +338,9 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
     current = Current(effects=(), values={}, base=np.asarray(base_fit.x[:7], float),
                       theta_fit=float(job.frame_theta(empty, fit_f, base_fit.x[None]).mean()),
                       sel_pf=job.frame_theta(empty, held_f, base_fit.x[None], 50)[0], x=base_fit.x, model=empty)
+    current = current_ls(job, current, max_nfev=LS_BASE_NFEV)
     base_sel_pf = current.sel_pf.copy()
+    base_sel_E = current.ls_sel_E.copy()
     base_params = {"base": {k: float(v) for k, v in zip(RGB_NAMES, current.base)}, "effects": {}}
 
     # ---------------------------------------------------------------- greedy forward selection on held-out frames
@@ -355,37 +365,51 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
             results[e] = JUDGES[e].refit(cheap, current)
         best, rows = None, []
         for e, r in results.items():
-            margin = margin_for(r.sel_pf - current.sel_pf, len(cands), seed=seed)
-            ok, strength = JUDGES[e].accept(r, current, margin)
+            # two held-out tests per candidate (θ and the residual): both margins corrected for 2 x candidates
+            margin = margin_for(r.sel_pf - current.sel_pf, 2 * len(cands), seed=seed)
+            imp = residual_improvement(current, r)
+            res_margin = (margin_for(imp, 2 * len(cands), seed=seed, floor=MIN_RESIDUAL_MARGIN)
+                          if imp is not None else None)
+            ok, strength, crit = JUDGES[e].accept(r, current, margin, res_margin)
             if rnd == 1:
                 first[e] = float(np.mean(r.sel_pf - current.sel_pf)) if not ok else max(strength, 1e-6)
-            rows.append(_candidate_row(rnd, current, e, r, margin, ok, strength))
+            rows.append(_candidate_row(rnd, current, e, r, margin, ok, strength, crit, imp, res_margin))
             if ok and (best is None or strength > best[2]):
-                best = (e, r, strength, margin)
+                best = (e, r, strength, margin, crit)
         candidates += rows
         steps.append({"round": rnd, "model": current.name, "theta_heldout": float(current.sel_pf.mean()),
+                      "residual_heldout": float(np.mean(current.ls_sel_E)),
                       "theta_train": current.theta_fit, "tried": [row["effect"] for row in rows],
                       "chosen": best[0] if best else None, "time_s": time.perf_counter() - t0})
         timing[f"round_{rnd}_s"] = time.perf_counter() - t0
         if best is None:
-            say(f"round {rnd}: no effect raised held-out θ beyond its margin; selection ends")
+            say(f"round {rnd}: no effect raised held-out θ or lowered the held-out residual beyond its margin; "
+                f"selection ends")
             break
-        e, r, strength, margin = best
+        e, r, strength, margin, crit = best
         before = float(current.sel_pf.mean())
+        before_E = current.ls_sel_E
         judge = JUDGES[e]
-        if judge.kind == "theta" and not judge.absorb and job.max_iter > cheap.max_iter:
+        keep = crit == "residual"
+        if judge.kind == "theta" and not judge.absorb and (job.max_iter > cheap.max_iter or keep):
             say(f"round {rnd}: refitting {current.name} + {e} with the full budget")
-            r_full = judge.refit(job, current, x_starts=[r.x])
-            candidates.append({**_candidate_row(rnd, current, e, r_full, margin, True, strength), "full_refit": True})
+            starts = ([r.extra["ls_x"]] if "ls_x" in r.extra else []) + ([] if r.started_at_current else [r.x])
+            r_full = judge.refit(job, current, x_starts=starts, keep_effect=keep)
+            r_full.extra.update({k: v for k, v in r.extra.items() if k.startswith("ls_")})
+            candidates.append({**_candidate_row(rnd, current, e, r_full, margin, True, strength, crit,
+                                                residual_improvement(current, r_full), None), "full_refit": True})
             r = r_full
         if judge.absorb:
             job, current = judge.absorb_into(job, current, r)
+            current = current_ls(job, current, max_nfev=LS_BASE_NFEV)
         else:
             current = with_effect(current, r)
-        say(f"round {rnd}: accepted {e} (held-out θ {before:.4f} -> {current.sel_pf.mean():.4f}, "
-            f"margin {margin:.4f})")
+        say(f"round {rnd}: accepted {e} by held-out {'residual' if keep else 'θ'} (held-out θ {before:.4f} -> "
+            f"{current.sel_pf.mean():.4f}, residual {np.mean(before_E):.3g} -> {np.mean(current.ls_sel_E):.3g} "
+            f"grey levels²)")
         accepted.append({"effect": e, "refit": r, "strength": strength, "margin": margin, "before": before,
-                         "after": float(current.sel_pf.mean())})
+                         "after": float(current.sel_pf.mean()), "criterion": crit,
+                         "residual_before": float(np.mean(before_E)), "residual_after": float(np.mean(current.ls_sel_E))})
         fits[current.name] = {"x": r.x, "held_pf": np.asarray(r.sel_pf), "model": r.model,
                               "model_effects": list(r.effects)}
         pool.remove(e)
@@ -400,9 +424,8 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
         say(f"judging {e} on the held-out frames' statistics (new in every frame: θ cannot rise)")
         r = JUDGES[e].refit(job, current)
         margin = margin_for(r.sel_pf - current.sel_pf, len(stat_effects), seed=seed)
-        ok, strength = JUDGES[e].accept(r, current, margin)
-        row = _candidate_row(rnd + 1, current, e, r, margin, ok, strength)
-        row["criterion"] = "statistic"
+        ok, strength, crit = JUDGES[e].accept(r, current, margin)
+        row = _candidate_row(rnd + 1, current, e, r, margin, ok, strength, crit)
         candidates.append(row)
         if ok and len(accepted) < max_effects:
             accepted.append({"effect": e, "refit": r, "strength": strength, "margin": margin,
@@ -423,7 +446,8 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
         judge = JUDGES[e]
         vals = eff_values[e]
         doubts = judge.plausibility(vals)
-        words = gain_words(a["before"], a["after"], r.statistic if judge.kind == "statistic" else None)
+        words = gain_words(a["before"], a["after"], r.statistic if judge.kind == "statistic" else None,
+                           (a["residual_before"], a["residual_after"]) if a.get("criterion") == "residual" else None)
         text = judge.explain(vals, words, sigs.get(e))
         if doubts:
             text += " — doubt: " + "; ".join(doubts)
@@ -437,8 +461,10 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
     diag = Diagnosis(
         verdict=verdict, candidates=candidates,
         base={"theta_train": float(base_fit.theta_train), "theta_heldout": float(base_sel_pf.mean()),
+              "residual_heldout": float(np.mean(base_sel_E)),
               "params": dict(base_params["base"]), "doubts": base_doubts(base_params["base"])},
-        final={"theta_heldout": final_theta, "effects": final_effects, "params": _flat(final_params),
+        final={"theta_heldout": final_theta, "residual_heldout": float(np.mean(current.ls_sel_E)),
+               "effects": final_effects, "params": _flat(final_params),
                "statistics": {a["effect"]: a["refit"].statistic for a in accepted
                               if JUDGES[a["effect"]].kind == "statistic"}},
         mismatch=mismatch,

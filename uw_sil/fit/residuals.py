@@ -22,8 +22,8 @@ from typing import Optional, Sequence
 import numpy as np
 
 __all__ = ["DiagFrame", "ReducedFrame", "box_down", "reduce_frame", "reduction_factor", "load_frames",
-           "split_frames", "base_sim", "residual_maps", "locate", "frame_geometry", "added_surface", "corrected_frame",
-           "LABEL_WATER", "LABEL_PANEL"]
+           "frames_from_samples", "split_frames", "base_sim", "residual_maps", "locate", "frame_geometry",
+           "added_surface", "corrected_frame", "LABEL_WATER", "LABEL_PANEL"]
 
 LABEL_WATER = 0
 LABEL_PANEL = 1
@@ -181,7 +181,6 @@ def load_frames(bag, k: int = 8, model=None, min_coverage: float = 0.01, image_t
     other frames when the recording has more). Raises ValueError when fewer than 2 usable frames remain.
     """
     from ..bags import open_bag, read_samples
-    from ..sim.render import Renderer
 
     info = open_bag(bag)
     if image_topic not in info.topics:
@@ -192,19 +191,35 @@ def load_frames(bag, k: int = 8, model=None, min_coverage: float = 0.01, image_t
     # candidate order: an even spread first, then the rest (to replace unusable frames)
     spread = list(dict.fromkeys(np.linspace(0, n - 1, min(k, n)).round().astype(int).tolist()))
     wanted = set(spread)
+    samples = []
+    for i, s in enumerate(read_samples(bag, image_topic=image_topic)):
+        if i >= max_frames_scan:
+            break
+        samples.append((i, s) if i in wanted or n <= 4 * k else (i, None))
+    return frames_from_samples(samples, k, model=model, min_coverage=min_coverage, renderer=renderer,
+                               what=f"bag {bag}")
+
+
+def frames_from_samples(samples: list, k: int = 8, model=None, min_coverage: float = 0.01, renderer=None,
+                        what: str = "recording") -> list:
+    """Up to ``k`` frames spread evenly over ``samples``, each rendered at its recorded pose.
+
+    ``samples`` are ``(index, Sample or None)`` in recording order (None: a paired image that was not kept);
+    the spread is over all of them, the frames are taken from those kept, unusable ones (the model covers
+    less than ``min_coverage``) replaced by the next kept ones. :func:`load_frames` reads a bag so; the
+    ``backward_fit`` node collects the samples of a live stream so. Raises ValueError (prefixed ``what``)
+    when fewer than 2 usable frames remain.
+    """
+    from ..sim.render import Renderer
+
     frames, skipped = [], []
     own = renderer is None
     rend = renderer
-    samples = []
     try:
-        for i, s in enumerate(read_samples(bag, image_topic=image_topic)):
-            if i >= max_frames_scan:
-                break
-            samples.append((i, s) if i in wanted or n <= 4 * k else (i, None))
         # the stream may hold fewer samples than the topic count (unpaired images): rebuild the spread
         avail = [i for i, s in samples]
         if not avail:
-            raise ValueError(f"bag {bag}: no image could be paired with camera_info and /panel/pose")
+            raise ValueError(f"{what}: no image could be paired with camera_info and /panel/pose")
         by_idx = dict(samples)
         order = [avail[j] for j in dict.fromkeys(np.linspace(0, len(avail) - 1, min(k, len(avail)))
                                                 .round().astype(int).tolist())]
@@ -234,7 +249,7 @@ def load_frames(bag, k: int = 8, model=None, min_coverage: float = 0.01, image_t
             rend.close()
     if len(frames) < 2:
         why = f"; e.g. frame {skipped[0][0]}: {skipped[0][1]}" if skipped else ""
-        raise ValueError(f"bag {bag}: only {len(frames)} usable frame(s) showing the scene model (need >= 2){why}")
+        raise ValueError(f"{what}: only {len(frames)} usable frame(s) showing the scene model (need >= 2){why}")
     frames.sort(key=lambda f: f.index)
     return frames
 

@@ -189,7 +189,7 @@ def run_node(make_node: Callable, spin: Optional[Callable] = None, args=None, na
 
 
 #: The node modules under :mod:`uw_sil.nodes` (each a console script of the same name, :mod:`.entry`).
-NODES = ("sim_camera", "backward_fit", "bag_play", "enhancer")
+NODES = ("sim_camera", "backward_fit", "bag_play", "enhancer", "panel_pose")
 
 
 def start_node(module: str) -> int:
@@ -274,3 +274,17 @@ def _run_node(make_node, spin, args, name, user_errors) -> int:
             pass
         _ignore_signals()           # rclpy.try_shutdown restored the handlers it found at init
     return code
+
+
+def camera_from_file(path: str, frame_id: str = "camera_optical_frame"):
+    """The camera of a ROS ``camera_calibration`` YAML file (``camera_info_url``-style ``camera_info_file``
+    parameter of the nodes, for recordings without ``camera/camera_info``); ValueError when it has lens
+    distortion: the nodes take rectified images (rectify upstream, e.g. image_proc; the offline commands
+    rectify themselves, ``--camera-info``)."""
+    from ..bags.camera_yaml import load_camera_yaml
+
+    calib = load_camera_yaml(path)
+    if calib.has_distortion:
+        raise ValueError(f"camera_info_file {path} has lens distortion ({calib.distortion_model} "
+                         f"{list(map(float, calib.D))}): the nodes take rectified images only")
+    return calib.raw_camera(frame_id)

@@ -3,14 +3,17 @@ instant (SIL, the paper's forward half: the fitted underwater model inverted on 
 or with the image-only baselines DCP / UDCP (:mod:`uw_sil.enhance.sil`).
 
 Subscribes (sensor-data QoS)
-    ``camera/image_raw`` (rgb8, bgr8, rgba8, bgra8; grey images are refused), ``sim/depth`` (32FC1),
+    ``camera/image_raw`` (rgb8, bgr8, rgba8, bgra8; grey images are refused), or with ``image_transport:=
+    compressed`` ``camera/image_raw/compressed`` (sensor_msgs/CompressedImage, JPEG/PNG, image_transport's
+    naming), ``sim/depth`` (32FC1),
     ``sim/mask`` (mono8 labels, 0 water), ``sim/camera_info`` (the intrinsics of the depth), paired by
     stamp with :class:`uw_sil.bags.stamps.StampSynchronizer` (tolerance ``max_dt``: an image is paired with
     the sim frame nearest in stamp, its own when sim_camera rendered its pose; when sim_camera skipped that
     pose (it renders the newest) a neighbour within ``max_dt`` is used; ``max_dt:=0.0`` demands the own).
     ``/parameter_events``: the model parameters of ``sim_node`` (``a_r a_g a_b b_r b_g b_b rho_f fog_mode``
-    and any ``<effect>.<param>``), read from it at start and followed afterwards, so a backward fit that
-    re-parameterizes ``sim_camera`` re-parameterizes the enhancer too. ``camera/image_raw`` is subscribed
+    ``effects`` and the ``<effect>.<param>`` of the effects it lists), read from it at start and followed
+    afterwards, so a backward fit (or diagnosis) that re-parameterizes ``sim_camera`` re-parameterizes the
+    enhancer too. ``camera/image_raw`` is subscribed
     only once the model is known and ``sim_node`` listens on ``sim_pose_topic`` (a replayed bag waiting for
     this subscription then loses no frame to start-up).
 Publishes
@@ -29,8 +32,9 @@ Parameters
     ``method`` (sil|dcp|udcp, live), ``t0`` (gain cap 1/t0, live), ``b_from_frame`` (live: re-estimate the
     background on each frame from its water), ``max_gain`` (lamp-effect gain cap, live); read-only:
     ``sim_node`` (sim_camera), ``sim_pose_topic`` (panel/pose), ``max_dt`` (0.05 s), ``queue_size`` (2),
-    ``pair_queue_size`` (30 images waiting for their sim frame), ``erode_px`` (8), ``idle_timeout`` (0 = run until stopped; > 0: exit once no frame has come for that many
-    seconds and the queue is empty: the end of a replayed bag).
+    ``pair_queue_size`` (30 images waiting for their sim frame), ``erode_px`` (8), ``idle_timeout`` (0 = run
+    until stopped; > 0: exit once no frame has come for that many seconds and the queue is empty: the end of a
+    replayed bag), ``image_transport`` (raw | compressed).
 """
 from __future__ import annotations
 
@@ -48,10 +52,10 @@ from rclpy.parameter_client import AsyncParameterClient
 from rclpy.qos import (DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_parameter_events,
                        qos_profile_sensor_data)
 from rclpy.task import Future
-from sensor_msgs.msg import CameraInfo, Image
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import String
 
-from ..bags.imgmsg import image_to_depth, image_to_mono, image_to_rgb, rgb_to_image_fields
+from ..bags.imgmsg import compressed_to_rgb, image_to_depth, image_to_mono, image_to_rgb, rgb_to_image_fields
 from ..bags.stamps import StampSynchronizer
 from ..enhance.sil import METHODS, Enhancer, model_from_parameters
 from ..sim.camera import CameraModel
@@ -59,6 +63,8 @@ from ..sim.params import RGB_NAMES
 from . import executor_for, run_node
 
 MODEL_NAMES = tuple(RGB_NAMES) + ("fog_mode",)
+#: ``image_transport`` values: the camera topic and message type of each (image_transport's naming).
+TRANSPORTS = {"raw": ("camera/image_raw", Image), "compressed": ("camera/image_raw/compressed", CompressedImage)}
 #: Images in a row without a sim partner after which the stamp offsets are logged (once per such run).
 UNPAIRED_WARN = 10
 LATENCY_WINDOW = 300
@@ -80,6 +86,24 @@ def _value(p):
     if t == ParameterType.PARAMETER_BOOL:
         return p.bool_value
     return None
+
+
+def _effect_keys(effects) -> list:
+    """``<effect>.<param>`` of every effect an ``effects`` parameter value lists (``NAME[=preset],...``)."""
+    from ..sim.effects import get_effect, parse_effects
+
+    if not isinstance(effects, str) or not effects.strip():
+        return []
+    return [f"{n}.{p}" for n in parse_effects(effects) for p in get_effect(n).param_names]
+
+
+def _active(values: dict) -> dict:
+    """The model parameters of ``values`` without the effects sim_node declares but does not render: with an
+    ``effects`` list (sim_camera's ``extensible_effects`` declares inactive ones), only the listed effects."""
+    if "effects" not in values:
+        return values
+    keep = set(_effect_keys(values["effects"]))
+    return {k: v for k, v in values.items() if "." not in k or k in keep}
 
 
 class BadInput(ValueError):
@@ -123,8 +147,15 @@ class EnhancerNode(Node):
                                                 integer_range=[IntegerRange(from_value=0, to_value=100)], **ro))
         self.declare_parameter("idle_timeout", 0.0, d(description="> 0: exit after this many seconds without a "
                                                                   "frame (end of a replayed bag)", **ro))
+        self.declare_parameter("image_transport", "raw", d(
+            description="camera input: raw (sensor_msgs/Image on camera/image_raw) or compressed (sensor_msgs/"
+                        "CompressedImage, JPEG/PNG, on camera/image_raw/compressed)",
+            additional_constraints="one of " + ", ".join(TRANSPORTS), **ro))
         g = lambda n: self.get_parameter(n).value  # noqa: E731
         self.method = g("method")
+        if g("image_transport") not in TRANSPORTS:
+            raise ValueError(f"parameter image_transport must be one of {', '.join(TRANSPORTS)}, "
+                             f"got {g('image_transport')!r}")
         if self.method not in METHODS:
             raise ValueError(f"parameter method must be one of {METHODS}, got {self.method!r}")
         self.enhancer = Enhancer(t0=g("t0"), max_gain=g("max_gain"), b_from_frame=g("b_from_frame"),
@@ -205,7 +236,7 @@ class EnhancerNode(Node):
         merged = dict(self._sim_values)
         merged.update(values)
         try:
-            model = model_from_parameters(merged)
+            model = model_from_parameters(_active(merged))
         except (ValueError, TypeError) as e:
             self.get_logger().error(f"ignoring the model parameters of {self._sim_fqn} ({source}): {e}")
             return
@@ -220,7 +251,7 @@ class EnhancerNode(Node):
             return
         values = {}
         for p in list(msg.new_parameters) + list(msg.changed_parameters):
-            if p.name in MODEL_NAMES or "." in p.name:
+            if p.name in MODEL_NAMES or p.name == "effects" or "." in p.name:
                 v = _value(p.value)
                 if v is not None:
                     values[p.name] = v
@@ -244,25 +275,38 @@ class EnhancerNode(Node):
         sim_name = self._sim_fqn.rsplit("/", 1)[-1]
         if not any(i.node_name == sim_name for i in self.get_subscriptions_info_by_topic(topic)):
             return
-        self._image_sub = self.create_subscription(Image, "camera/image_raw", lambda m: self._add(0, m),
-                                                   self._sensor)
+        topic, msg_type = TRANSPORTS[self.get_parameter("image_transport").value]
+        self._image_sub = self.create_subscription(msg_type, topic, lambda m: self._add(0, m), self._sensor)
         self._ready_timer.cancel()
-        self.get_logger().info(f"ready: enhancing camera/image_raw with {self.method}")
+        self.get_logger().info(f"ready: enhancing {self._image_sub.topic_name} with {self.method}")
 
-    def _on_parameters(self, fut):
+    def _on_parameters(self, fut, names=MODEL_NAMES, got_before=None):
         try:
             values = fut.result().values
         except Exception as e:  # the service call failed: ask again
             self.get_logger().warning(f"reading the parameters of {self._sim_fqn} failed: {e}; retrying")
             self._param_future = None
             return
-        got = {n: _value(v) for n, v in zip(MODEL_NAMES, values)}
+        got = dict(got_before or {})
+        got.update({n: _value(v) for n, v in zip(names, values)})
         got = {n: v for n, v in got.items() if v is not None and n not in self._from_events}
         if not all(n in {**self._sim_values, **got} for n in RGB_NAMES):
             self.get_logger().error(f"{self._sim_fqn} has no model parameters {list(RGB_NAMES)}; retrying",
                                     throttle_duration_sec=10.0)
             self._param_future = None
             return
+        # Then the effects sim_node renders: its ``effects`` list (asked alone: a request naming a parameter the
+        # node does not declare is answered with no values at all), then their parameters.
+        if got_before is None:
+            self._param_future = self._param_client.get_parameters(["effects"])
+            self._param_future.add_done_callback(lambda f: self._on_parameters(f, ("effects",), got))
+            return
+        if names == ("effects",):
+            keys = _effect_keys(got.get("effects", self._sim_values.get("effects", "")))
+            if keys:
+                self._param_future = self._param_client.get_parameters(keys)
+                self._param_future.add_done_callback(lambda f: self._on_parameters(f, tuple(keys), got))
+                return
         self._apply_sim_values(got, "parameter services")
 
     # ------------------------------------------------------------------ input
@@ -343,13 +387,14 @@ class EnhancerNode(Node):
     def _process(self, match):
         (img, t_img), (depth_msg, t_d), (mask_msg, t_m), (info, t_i) = match.items
         t_ready = max(t_img, t_d, t_m, t_i)
-        if str(img.encoding) in ("mono8", "8UC1", "mono16"):
+        compressed = isinstance(img, CompressedImage)
+        if not compressed and str(img.encoding) in ("mono8", "8UC1", "mono16"):
             raise BadInput("mono", f"camera/image_raw is grey ({img.encoding}): the model restores each colour "
                                    f"channel with its own attenuation")
         try:
-            rgb = image_to_rgb(img)
+            rgb = compressed_to_rgb(img) if compressed else image_to_rgb(img)
         except ValueError as e:
-            raise BadInput("image", f"camera/image_raw: {e}") from None
+            raise BadInput("image", f"{self._image_sub.topic_name}: {e}") from None
         try:
             depth = image_to_depth(depth_msg)
             mask = image_to_mono(mask_msg)

@@ -33,6 +33,10 @@ def enhancer() -> int:
     return start("enhancer")
 
 
+def panel_pose() -> int:
+    return start("panel_pose")
+
+
 if __name__ == "__main__":
     if len(sys.argv) < 2 or sys.argv[1] not in NODES:
         sys.exit(f"usage: python -m uw_sil.nodes.entry NODE [ARGS] (NODE: {', '.join(NODES)})")

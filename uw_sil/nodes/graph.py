@@ -54,6 +54,25 @@ def share_file(*parts: str) -> Path:
 #: Topics ``backward_fit`` subscribes to (as resolved in the root namespace): a replayed bag must have them.
 BACKWARD_INPUTS = ("/camera/image_raw", "/camera/camera_info", "/panel/pose")
 
+#: The camera topic of each ``image_transport`` (image_transport's naming).
+IMAGE_TOPICS = {"raw": "/camera/image_raw", "compressed": "/camera/image_raw/compressed"}
+
+
+def _camera_input(image_transport: str, pose_source: str, camera_info_file: str) -> tuple:
+    """The parameters every camera-reading node takes, and the panel_pose node when the pose comes from the
+    panel's markers (None otherwise)."""
+    if image_transport not in IMAGE_TOPICS:
+        raise ValueError(f"image_transport must be one of {', '.join(IMAGE_TOPICS)}, got {image_transport!r}")
+    if pose_source not in ("topic", "markers"):
+        raise ValueError(f"pose_source must be topic or markers, got {pose_source!r}")
+    params = {}
+    if image_transport != "raw":
+        params["image_transport"] = image_transport
+    if camera_info_file:
+        params["camera_info_file"] = str(camera_info_file)
+    marker_node = NodeSpec("panel_pose", "panel_pose", parameters=dict(params)) if pose_source == "markers" else None
+    return params, marker_node
+
 
 #: Seconds without a new frame after which ``backward_fit`` fits the frames it has (replayed bags).
 IDLE_TIMEOUT = 3.0
@@ -66,7 +85,10 @@ FIRST_FRAME_TIMEOUT = 40.0
 def backward_graph(sim_params: Optional[str] = None, bag: Optional[str] = None, output_yaml: str = "",
                    frames: int = 3, optimizer: str = "pso", rate: float = 1.0, loop: bool = False,
                    max_iter: Optional[int] = None, stride: Optional[int] = None,
-                   keep_running: bool = False, start_paused: bool = False) -> list:
+                   keep_running: bool = False, start_paused: bool = False, diagnose: bool = False,
+                   diagnose_frames: Optional[int] = None, diagnose_max_effects: Optional[int] = None,
+                   diagnose_effects: str = "", output_json: str = "", image_transport: str = "raw",
+                   pose_source: str = "topic", camera_info_file: str = "") -> list:
     """sim_camera + backward_fit (+ bag_play replaying a field trial when ``bag`` is given).
 
     With a bag the graph is an offline replay: ``backward_fit`` exits once the fit is done (or has
@@ -76,11 +98,27 @@ def backward_graph(sim_params: Optional[str] = None, bag: Optional[str] = None, 
     does not end the graph. If the bag has fewer usable frames than ``frames``, ``backward_fit``
     fits those it has ``IDLE_TIMEOUT`` s after the last one. With ``start_paused`` the replay waits for
     ``bag_play``'s ``~/resume`` (and ``backward_fit`` waits as long as that takes for its first frame).
+
+    With ``diagnose`` backward_fit diagnoses instead (``diagnose_frames`` spread over the frames received,
+    see :mod:`uw_sil.nodes.backward_fit`) and sends the extended model; sim_camera is then started with
+    ``extensible_effects: all``, so that it takes the accepted effects live. ``image_transport`` (raw |
+    compressed) chooses the camera topic, ``pose_source: markers`` adds ``panel_pose`` (the pose from the
+    panel's markers on ``panel/pose``), ``camera_info_file`` replaces ``camera/camera_info``.
     """
     sim_params = sim_params or str(share_file("config", "sim_camera.yaml"))
     exit_when_done = bool(bag) and not keep_running
+    camera, marker_node = _camera_input(image_transport, pose_source, camera_info_file)
     fit = {"frames": int(frames), "optimizer": optimizer, "output_yaml": output_yaml, "sim_node": "sim_camera",
-           "exit_when_done": exit_when_done}
+           "exit_when_done": exit_when_done, **camera}
+    if diagnose:
+        fit["diagnose"] = True
+        for name, value in (("diagnose_frames", diagnose_frames), ("diagnose_max_effects", diagnose_max_effects)):
+            if value is not None:
+                fit[name] = int(value)
+        if diagnose_effects:
+            fit["diagnose_effects"] = str(diagnose_effects)
+        if output_json:
+            fit["output_json"] = str(output_json)
     if bag:
         # the bag may hold fewer usable frames than asked for: fit those once it has ended; and say so
         # when none arrive at all
@@ -91,13 +129,19 @@ def backward_graph(sim_params: Optional[str] = None, bag: Optional[str] = None, 
         fit["max_iter"] = int(max_iter)
     if stride is not None:
         fit["stride"] = int(stride)
+    sim = {"extensible_effects": "all"} if diagnose else {}
+    if camera_info_file:
+        sim["camera_info_file"] = str(camera_info_file)
     nodes = [
-        NodeSpec("sim_camera", "sim_camera", param_files=[sim_params]),
+        NodeSpec("sim_camera", "sim_camera", param_files=[sim_params], parameters=sim),
         NodeSpec("backward_fit", "backward_fit", parameters=fit, required=exit_when_done),
     ]
+    if marker_node is not None:
+        nodes.append(marker_node)
     if bag:
-        nodes.append(_bag_play(bag, rate, loop, [BACKWARD_INPUTS[0], BACKWARD_INPUTS[2]], ["backward_fit"],
-                               start_paused))
+        waits = [IMAGE_TOPICS[image_transport]] + ([BACKWARD_INPUTS[2]] if marker_node is None else [])
+        readers = ["backward_fit"] + (["panel_pose"] if marker_node is not None else [])
+        nodes.append(_bag_play(bag, rate, loop, waits, readers, start_paused))
     return nodes
 
 
@@ -109,8 +153,10 @@ REPLAY_SIM_CAMERA = {"queue_size": 100}
 FORWARD_INPUT = "/camera/image_raw"
 
 
-def _enhancer(method: str, b_from_frame: bool, idle_exit: bool) -> NodeSpec:
+def _enhancer(method: str, b_from_frame: bool, idle_exit: bool, image_transport: str = "raw") -> NodeSpec:
     params = {"method": method, "b_from_frame": bool(b_from_frame), "sim_node": "sim_camera"}
+    if image_transport != "raw":
+        params["image_transport"] = image_transport
     if idle_exit:
         params["idle_timeout"] = IDLE_TIMEOUT
     return NodeSpec("enhancer", "enhancer", parameters=params, required=idle_exit)
@@ -154,7 +200,10 @@ def forward_graph(sim_params: Optional[str] = None, bag: Optional[str] = None, r
 def sil_graph(sim_params: Optional[str] = None, bag: Optional[str] = None, output_yaml: str = "", frames: int = 3,
               optimizer: str = "pso", rate: float = 1.0, loop: bool = False, max_iter: Optional[int] = None,
               stride: Optional[int] = None, keep_running: bool = False, method: str = "sil",
-              b_from_frame: bool = False, start_paused: bool = False) -> list:
+              b_from_frame: bool = False, start_paused: bool = False, diagnose: bool = False,
+              diagnose_frames: Optional[int] = None, diagnose_max_effects: Optional[int] = None,
+              diagnose_effects: str = "", output_json: str = "", image_transport: str = "raw",
+              pose_source: str = "topic", camera_info_file: str = "") -> list:
     """Both halves: sim_camera + backward_fit + enhancer (+ bag_play): the fit re-parameterizes sim_camera,
     and through its parameter events the enhancer.
 
@@ -164,12 +213,17 @@ def sil_graph(sim_params: Optional[str] = None, bag: Optional[str] = None, outpu
     """
     nodes = [n for n in backward_graph(sim_params=sim_params, bag=bag, output_yaml=output_yaml, frames=frames,
                                        optimizer=optimizer, rate=rate, loop=loop, max_iter=max_iter, stride=stride,
-                                       keep_running=keep_running, start_paused=start_paused)
+                                       keep_running=keep_running, start_paused=start_paused, diagnose=diagnose,
+                                       diagnose_frames=diagnose_frames, diagnose_max_effects=diagnose_max_effects,
+                                       diagnose_effects=diagnose_effects, output_json=output_json,
+                                       image_transport=image_transport, pose_source=pose_source,
+                                       camera_info_file=camera_info_file)
              if n.name != "bag_play"]
-    nodes.append(_enhancer(method, b_from_frame, idle_exit=False))
+    nodes.append(_enhancer(method, b_from_frame, idle_exit=False, image_transport=image_transport))
     if bag:
         nodes[0].parameters.update(REPLAY_SIM_CAMERA)
-        nodes.append(_bag_play(bag, rate, loop, [FORWARD_INPUT], ["backward_fit", "enhancer"], start_paused))
+        readers = ["backward_fit", "enhancer"] + (["panel_pose"] if pose_source == "markers" else [])
+        nodes.append(_bag_play(bag, rate, loop, [IMAGE_TOPICS[image_transport]], readers, start_paused))
     return nodes
 
 
@@ -312,6 +366,20 @@ BACKWARD_ARGS = (
     GraphArg("keep_running", "with a bag: keep the graph running after the fit, until Ctrl-C", bool, False),
     GraphArg("start_paused", "with a bag: wait for `ros2 service call /bag_play/resume std_srvs/srv/Trigger` "
              "before replaying (time to start a recorder or viewer)", bool, False),
+    GraphArg("diagnose", "backward_fit diagnoses instead of fitting: finds the physics the simulation lacks "
+             "(/diagnostics, /backward_fit/diagnosis) and re-parameterizes sim_camera with the extended model",
+             bool, False),
+    GraphArg("diagnose_frames", "with diagnose: frames diagnosed, spread over those received", int, minimum=3),
+    GraphArg("diagnose_max_effects", "with diagnose: effects in the extended model at most", int, minimum=1),
+    GraphArg("diagnose_effects", "with diagnose: effects considered, comma-separated (default: every effect the "
+             "diagnosis judges)"),
+    GraphArg("output_json", "with diagnose: write the diagnosis JSON here (as uw-sil diagnose --json)", path=True),
+    GraphArg("image_transport", "camera input: raw (camera/image_raw) or compressed (camera/image_raw/compressed, "
+             "sensor_msgs/CompressedImage)", str, "raw", choices=("raw", "compressed")),
+    GraphArg("pose_source", "panel pose: topic (panel/pose is recorded or published) or markers (the panel_pose "
+             "node detects the panel's markers and publishes panel/pose)", str, "topic", choices=("topic", "markers")),
+    GraphArg("camera_info_file", "camera calibration YAML (no distortion) used instead of camera/camera_info, for "
+             "recordings without it", path=True),
 )
 
 _ENHANCER_ARGS = (

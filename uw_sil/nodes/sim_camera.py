@@ -3,7 +3,9 @@
 Subscribes
     ``panel/pose`` (geometry_msgs/PoseStamped): the panel in the camera optical frame.
     ``camera/camera_info`` (sensor_msgs/CameraInfo, optional): intrinsics of the real camera; until one
-    arrives the ``width``/``height``/``hfov_deg`` parameters define the camera.
+    arrives the ``width``/``height``/``hfov_deg`` parameters define the camera. Not subscribed with
+    ``camera_info_file`` (read-only: a camera calibration YAML without distortion, for recordings without
+    camera_info), which then defines the camera.
 Publishes (stamped with the pose's stamp, frame = the pose's frame)
     ``sim/image_raw`` (rgb8), ``sim/image_clean`` (rgb8), ``sim/depth`` (32FC1 planar z in metres,
     REP 118, +inf where nothing was hit), ``sim/mask`` (mono8 labels: 0 water, 1 panel, 2 seafloor),
@@ -13,10 +15,14 @@ Parameters (live, validated; set with ``ros2 param set`` or the parameter servic
     ``fog_mode`` (exp2|exp|none), ``noise_sigma`` (camera noise in grey levels); read-only: ``model_path``, ``width``, ``height``, ``hfov_deg``,
     ``queue_size`` (1: poses arriving while a frame renders replace each other, so the newest is
     rendered next; raise it to render every pose of a burst, at the cost of latency).
-    ``effects`` (read-only string, default ""): effects of :mod:`uw_sil.sim.effects` added to the model,
+    ``effects`` (string, default ""): effects of :mod:`uw_sil.sim.effects` added to the model,
     ``"NAME[=mild|strong],..."``; for each listed effect its parameters ``<effect>.<param>`` are declared
     (live, with ranges; initial values: the preset if given, else the effect's defaults; a params file
-    overrides them).
+    overrides them). Read-only unless ``extensible_effects`` is given.
+    ``extensible_effects`` (read-only string, default ""): effects a re-parameterization may add later
+    (``NAME,...`` or ``all``): their parameters are declared too (at the effect's defaults, inactive), and
+    ``effects`` is live, taking names of these (no presets), so that e.g. the diagnosis of ``backward_fit``
+    sets ``effects`` and the accepted effects' parameters in one atomic batch.
 """
 from __future__ import annotations
 
@@ -37,7 +43,7 @@ from ..sim.optics import FOG_MODES
 from ..sim.params import RGB_NAMES, UNITS, UnderwaterParams
 from ..sim.simcam import SimCamera
 from ..sim.transforms import pose_to_matrix
-from . import run_node
+from . import camera_from_file, run_node
 
 _RANGES = {"a": (0.0, 5.0), "b": (0.0, 1.0), "rho": (0.0, 5.0)}
 #: Largest image side ``width``/``height`` accept, and the camera noise range [grey levels].
@@ -80,12 +86,36 @@ def _descriptor(name: str) -> ParameterDescriptor:
             description="horizontal field of view [deg] until a camera_info arrives; read at start",
             read_only=True, floating_point_range=_float_range(1.0, 179.0)),
         "effects": lambda: ParameterDescriptor(
-            description="effects added to the model: NAME[=mild|strong],... (uw_sil.sim.effects); read at start",
-            read_only=True),
+            description="effects added to the model: NAME[=mild|strong],... (uw_sil.sim.effects); read at start "
+                        "(live with extensible_effects: names of those, no presets)", read_only=True),
+        "extensible_effects": lambda: ParameterDescriptor(
+            description="effects that a re-parameterization may add later: NAME,... or all (their parameters are "
+                        "declared, inactive; effects is then live); read at start", read_only=True),
+        "camera_info_file": lambda: ParameterDescriptor(
+            description="camera calibration YAML (no distortion) used instead of camera/camera_info (empty: "
+                        "subscribe camera/camera_info); read at start", read_only=True),
         "queue_size": lambda: ParameterDescriptor(
             description="poses queued while a frame renders (1: the newest replaces older ones); read at start",
             read_only=True, integer_range=_int_range(1, 1000)),
     }[name]()
+
+
+def _effect_list(spec: str, what: str) -> list:
+    """Effect names of a comma-separated list (``all``: every effect); ValueError naming ``what``. Presets
+    (``NAME=mild``) are refused here: only the start-up ``effects`` takes them."""
+    from ..sim.effects import EFFECTS
+
+    items = [s.strip() for s in str(spec).split(",") if s.strip()]
+    if items == ["all"]:
+        return list(EFFECTS)
+    names = []
+    for item in items:
+        if "=" in item:
+            raise ValueError(f"{what}: {item!r}: presets are taken only at start; set <effect>.<param> instead")
+        if item not in EFFECTS:
+            raise ValueError(f"{what}: unknown effect {item!r}; known: {', '.join(EFFECTS)}")
+        names.append(item)
+    return names
 
 
 class SimCameraNode(Node):
@@ -95,15 +125,26 @@ class SimCameraNode(Node):
         for n in RGB_NAMES:
             self.declare_parameter(n, defaults[n], _descriptor(n))
         for n, default in (("fog_mode", "exp2"), ("noise_sigma", 0.0), ("model_path", ""), ("width", 640),
-                           ("height", 480), ("hfov_deg", 70.0), ("queue_size", 1), ("effects", "")):
+                           ("height", 480), ("hfov_deg", 70.0), ("queue_size", 1), ("extensible_effects", ""),
+                           ("camera_info_file", "")):
             self.declare_parameter(n, default, _descriptor(n))
+        self._extensible = _effect_list(self.get_parameter("extensible_effects").value, "extensible_effects")
+        effects = _descriptor("effects")
+        effects.read_only = not self._extensible
+        self.declare_parameter("effects", "", effects)
         self._effect_names = self._declare_effects(self.get_parameter("effects").value)
+        self._effect_names_at_start = list(self._effect_names)
+        for name in self._extensible:     # the others: declared at their defaults, inactive until listed
+            if name not in self._effect_names:
+                self._declare_effect(get_effect(name), get_effect(name).defaults())
         g = self.get_parameter
         # Start-up values (parameter files, -p) pass the same checks as later changes.
         reason = self._check({n: g(n).value for n in (*RGB_NAMES, "fog_mode", "noise_sigma", *self._effect_keys)})
         if reason:
             raise ValueError(f"sim_camera: {reason}")
-        camera = CameraModel.from_fov(g("width").value, g("height").value, g("hfov_deg").value)
+        camera_file = g("camera_info_file").value
+        camera = (camera_from_file(camera_file) if camera_file
+                  else CameraModel.from_fov(g("width").value, g("height").value, g("hfov_deg").value))
         self.sim = SimCamera(self._params_from(dict()), camera=camera, model=g("model_path").value or None,
                              fog=g("fog_mode").value, noise_sigma=g("noise_sigma").value,
                              effects=self._effects_from(dict()))
@@ -117,12 +158,14 @@ class SimCameraNode(Node):
         self.pub_depth = self.create_publisher(Image, "sim/depth", qos_profile_sensor_data)
         self.pub_mask = self.create_publisher(Image, "sim/mask", qos_profile_sensor_data)
         self.pub_info = self.create_publisher(CameraInfo, "sim/camera_info", qos_profile_sensor_data)
-        self.create_subscription(CameraInfo, "camera/camera_info", self._on_camera_info, qos_profile_sensor_data)
+        if not camera_file:
+            self.create_subscription(CameraInfo, "camera/camera_info", self._on_camera_info, qos_profile_sensor_data)
         # Reliable; keep-last ``queue_size`` (1: when poses come faster than frames render, the newest is
         # rendered and the stale ones are dropped, which keeps the latency at about one render).
         pose_sub = self.create_subscription(PoseStamped, "panel/pose", self._on_pose, g("queue_size").value)
         self.frames = 0
-        self.get_logger().info(f"ready: {camera.width}x{camera.height} until a camera_info arrives, fog "
+        until = f"from {camera_file}" if camera_file else "until a camera_info arrives"
+        self.get_logger().info(f"ready: {camera.width}x{camera.height} {until}, fog "
                                f"{self.sim.fog}; rendering each pose on {pose_sub.topic_name}")
 
     def _declare_effects(self, spec: str) -> list:
@@ -132,17 +175,22 @@ class SimCameraNode(Node):
                 continue
             name, eq, level = item.partition("=")
             eff = get_effect(name.strip())
-            values = eff.severity(level.strip()) if eq else eff.defaults()
-            for p in eff.params:
-                self.declare_parameter(f"{eff.name}.{p.name}", float(values[p.name]), ParameterDescriptor(
-                    description=f"{eff.name}: {p.description}" + (f" [{p.unit}]" if p.unit else ""),
-                    floating_point_range=[FloatingPointRange(from_value=float(p.lo), to_value=float(p.hi), step=0.0)]))
+            self._declare_effect(eff, eff.severity(level.strip()) if eq else eff.defaults())
             names.append(eff.name)
         return names
 
+    def _declare_effect(self, eff, values: dict):
+        for p in eff.params:
+            self.declare_parameter(f"{eff.name}.{p.name}", float(values[p.name]), ParameterDescriptor(
+                description=f"{eff.name}: {p.description}" + (f" [{p.unit}]" if p.unit else ""),
+                floating_point_range=[FloatingPointRange(from_value=float(p.lo), to_value=float(p.hi), step=0.0)]))
+
     def _effects_from(self, changes: dict) -> dict:
         flat = {}
-        for name in self._effect_names:
+        names = self._effect_names
+        if "effects" in changes:
+            names = _effect_list(changes["effects"], "effects")
+        for name in names:
             for p in get_effect(name).param_names:
                 key = f"{name}.{p}"
                 flat[key] = float(changes.get(key, self.get_parameter(key).value))
@@ -152,6 +200,19 @@ class SimCameraNode(Node):
     def _effect_keys(self) -> list:
         return [f"{name}.{p}" for name in self._effect_names for p in get_effect(name).param_names]
 
+    def _check_effects(self, value) -> str:
+        """Why ``effects`` cannot be set live to ``value`` ('' if it can)."""
+        try:
+            names = _effect_list(value, "effects")
+        except ValueError as e:
+            return str(e)
+        declared = set(self._extensible) | set(self._effect_names_at_start)
+        missing = [n for n in names if n not in declared]
+        if missing:
+            return (f"effects: {', '.join(missing)} not declared (start sim_camera with extensible_effects "
+                    f"naming them, or all)")
+        return ""
+
     def _params_from(self, changes: dict) -> UnderwaterParams:
         d = {n: float(changes.get(n, self.get_parameter(n).value)) for n in RGB_NAMES}
         return UnderwaterParams.from_dict(d)
@@ -160,6 +221,10 @@ class SimCameraNode(Node):
         """Why ``changes`` (name -> value, on top of the current values) cannot be applied; '' if they can.
 
         Changes nothing. Ranges and types are also enforced by rclpy from the descriptors, before this."""
+        if "effects" in changes:
+            reason = self._check_effects(changes["effects"])
+            if reason:
+                return reason
         try:
             self._params_from(changes)
             self._effects_from(changes)
@@ -186,7 +251,9 @@ class SimCameraNode(Node):
             self.sim.fog = self.get_parameter("fog_mode").value
         if "noise_sigma" in names:
             self.sim.noise_sigma = self.get_parameter("noise_sigma").value
-        if names & set(self._effect_keys):
+        if "effects" in names:
+            self._effect_names = _effect_list(self.get_parameter("effects").value, "effects")
+        if "effects" in names or names & set(self._effect_keys):
             self.sim.effects = self._effects_from(dict())
 
     def _on_camera_info(self, msg: CameraInfo):

@@ -85,10 +85,10 @@ class CompressionJudge(Judge):
         return Refit(effect=self.effect, effects=(self.effect,), x=np.array([q]), params=params,
                      theta_fit=current.theta_fit, sel_pf=np.asarray(current.sel_pf), statistic=stat)
 
-    def accept(self, r, current, margin):
+    def accept(self, r, current, margin, res_margin=None):
         st = r.statistic
         ok = st["improvement"] > st["margin"]
-        return ok, st["improvement"] / st["margin"] if ok else 0.0
+        return ok, st["improvement"] / st["margin"] if ok else 0.0, "statistic"
 
     def explain(self, e, gain, sig):
         q = e.get("quality", 100)

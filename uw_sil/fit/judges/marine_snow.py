@@ -79,10 +79,10 @@ class MarineSnowJudge(Judge):
         return Refit(effect=self.effect, effects=(self.effect,), x=r["x"], params=r["params"],
                      theta_fit=r["theta_train"], sel_pf=r["held_pf"], statistic=r["statistic"])
 
-    def accept(self, r, current, margin):
+    def accept(self, r, current, margin, res_margin=None):
         st = r.statistic
         ok = st["improvement"] > st["margin"]
-        return ok, st["improvement"] / (3 * st["margin"]) if ok else 0.0
+        return ok, st["improvement"] / (3 * st["margin"]) if ok else 0.0, "statistic"
 
     def explain(self, e, gain, sig):
         dens = sig.stats.get("positive_per_mpx") if sig is not None else None

@@ -13,7 +13,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from ..diagfit import EffectModel, ls_fit
+from ..diagfit import EffectModel, ls_fit, residual_energy
 from ..residuals import corrected_frame, reduce_frame
 from .base import Judge, Refit, bootstrap_se
 
@@ -68,19 +68,12 @@ class PoseErrorJudge(Judge):
         s = self.signature(job)
         motion = [m for m in ((s.hint if s is not None else {}).get("motion") or []) if m[6] in fit_idx]
 
-        def mse(mdl, rfs, X):
-            out = np.zeros((len(X), len(rfs)))
-            for k, rf in enumerate(rfs):
-                sims = mdl.simulate(k, X) * 255.0
-                out[:, k] = ((sims - rf.image[None]) ** 2).mean(axis=(1, 2, 3))
-            return out
-
         xs = [model.x0(current.base)] + [model.x0(current.base, {self.effect: pose_hint(motion, sg)})
                                          for sg in (1.0, -1.0)]
-        e = mse(model, rfit, np.stack(xs)).mean(axis=1)
+        e = residual_energy(model, np.stack(xs)).mean(axis=1)
         x = ls_fit(model, xs[int(np.argmin(e))], stride=1, max_nfev=10)
         hmodel = model.like(rsel, seed=job.seed + 50)
-        eh = mse(hmodel, rsel, np.stack([hmodel.x0(current.base), x]))
+        eh = residual_energy(hmodel, np.stack([hmodel.x0(current.base), x]))
         imp = (eh[0] - eh[1]) / np.maximum(eh[0], 1e-9)
         pose = model.params_of(x)["effects"][self.effect]
         # held-out θ of the corrected pose: the frames' geometry moved at full resolution, reduced as every
@@ -96,13 +89,13 @@ class PoseErrorJudge(Judge):
         return Refit(effect=self.effect, effects=names, x=x, params=params, theta_fit=theta_fit, sel_pf=sel_pf,
                      model=model, statistic=stat, extra={"corrected": (fit_c, sel_c)})
 
-    def accept(self, r, current, margin):
+    def accept(self, r, current, margin, res_margin=None):
         gain = float(np.mean(r.sel_pf - current.sel_pf))
         st = r.statistic
         if gain > margin:
-            return True, gain / margin
+            return True, gain / margin, "theta"
         ok = st["improvement"] > st["margin"] and gain > -margin
-        return ok, st["improvement"] / st["margin"] if ok else 0.0
+        return ok, st["improvement"] / st["margin"] if ok else 0.0, "residual"
 
     def absorb_into(self, job, current, r):
         """Job and current model with the correction applied to every frame's geometry."""

@@ -167,13 +167,13 @@ class SensorNoiseJudge(Judge):
         return Refit(effect=self.effect, effects=(self.effect,), x=r["x"], params=r["params"],
                      theta_fit=r["theta_train"], sel_pf=r["held_pf"], statistic=r["statistic"])
 
-    def accept(self, r, current, margin):
+    def accept(self, r, current, margin, res_margin=None):
         st = r.statistic
         gain = float(np.mean(r.sel_pf - current.sel_pf))
         # next to another effect (which changes the signal and with it the intensity dependence of the
         # noise) a noise model must not lower held-out θ beyond the margin
         ok = st["improvement"] > st["margin"] and (not current.effects or gain > -margin)
-        return ok, st["improvement"] / (3 * st["margin"]) if ok else 0.0
+        return ok, st["improvement"] / (3 * st["margin"]) if ok else 0.0, "statistic"
 
     def explain(self, e, gain, sig):
         return (f"the camera noise has structure the simulation's constant noise lacks: variance rising with "

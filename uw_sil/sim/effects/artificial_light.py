@@ -26,7 +26,7 @@ Lamp-lit backscatter (single scattering, the veil in the water, brightest where 
 
 along the viewing ray ``s d`` of pixel ``p`` up to the surface (or 12 m in open water), with
 Henyey-Greenstein phase ``g = 0.9`` normalized to its backscatter value. The integral is evaluated on a
-coarse grid of viewing directions (at most 48 columns) and 32 log-spaced distances (cumulative
+coarse grid of viewing directions (a quarter of the image's columns, 12-48) and 32 log-spaced distances (cumulative
 trapezoid), then interpolated per pixel at its own range (trilinear), so silhouettes stay sharp.
 
 Signature: a smooth multiplicative log-residual on objects, slope about -2 against ln R plus a term in
@@ -46,6 +46,7 @@ R0 = 2.0                   # m, reference distance of the normalization
 HG_G = 0.9                 # Henyey-Greenstein asymmetry of the veil
 S_MIN, S_MAX, N_S = 0.02, 12.0, 32
 GRID_W = 48
+GRID_MIN = 12
 LN2 = math.log(2.0)
 
 
@@ -123,7 +124,7 @@ class ArtificialLight(Effect):
         st["X2"] = np.einsum("hwk,hwk->hw", X, X)
         st["nX"] = np.einsum("hwk,hwk->hw", n, X)
         # veil: a coarse grid of unit viewing directions and log-spaced distances along them
-        gw = min(w, GRID_W)
+        gw = min(w, GRID_W, max(GRID_MIN, w // 4))     # the veil is smooth: a quarter of the columns suffices
         gh = min(h, max(2, int(round(gw * h / w)))) if h > 1 else 1
         xs = np.linspace(0, w - 1, gw)
         ys = np.linspace(0, h - 1, gh)
