@@ -29,11 +29,20 @@ def bags(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def diagnoses(bags, tmp_path_factory):
+    """One diagnosis per trial. A trial with one concealed effect is diagnosed with --max-effects 1: the
+    selection ends once the first effect is accepted, which is the one test_names_the_concealed_effect asks
+    for (round 1 refits every effect either way; the control accepts none, so it runs as with the default).
+    Saves the later rounds (round 2: 47 of 267 s of the four diagnoses in a loaded run). What it trades: a
+    spurious second effect on a one-effect trial is no longer looked for here (with the default it would have
+    failed only if it came out with a higher confidence than the concealed one); the pair test below still
+    runs the later rounds."""
     d = tmp_path_factory.mktemp("diagjson")
     out = {}
     for name, bag in bags.items():
         js = d / f"{name}.json"
         args = ["diagnose", "--bag", str(bag), "--frames", "6", "--json", str(js)]
+        if CASES[name]:
+            args += ["--max-effects", "1"]
         if name == "vignetting":
             args += ["--params-out", str(d / "v.yaml"), "--report", str(d / "report")]
         assert main(args) == 0

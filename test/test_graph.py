@@ -27,6 +27,8 @@ def test_backward_graph_with_a_bag_ends_with_the_fit():
     assert play.parameters["wait_for_nodes"] == ["backward_fit"]
     # a bag with fewer usable frames than asked for still ends in a fit
     assert fit.parameters["idle_timeout"] == graph.IDLE_TIMEOUT > 0
+    # the player publishes reliably and a replay must lose no frame: the fit reads reliably too
+    assert fit.parameters["reliable_input"] is True
     assert by_name["sim_camera"].param_files == [str(graph.share_file("config", "sim_camera.yaml"))]
 
 
@@ -36,6 +38,7 @@ def test_live_or_keep_running_graphs_run_until_stopped(kwargs):
     assert not any(s.required for s in specs)
     assert all(s.parameters.get("exit_when_done", False) is False for s in specs)
     assert ("idle_timeout" in specs[1].parameters) == ("bag" in kwargs)
+    assert specs[1].parameters.get("reliable_input", False) == ("bag" in kwargs)   # a live camera: best effort
     assert ("bag_play" in [s.name for s in specs]) == ("bag" in kwargs)
 
 

@@ -24,6 +24,7 @@ pytestmark = pytest.mark.filterwarnings("ignore:module 'sre_:DeprecationWarning"
 from geometry_msgs.msg import PoseStamped  # noqa: E402
 from rcl_interfaces.msg import ParameterType  # noqa: E402
 from rclpy.context import Context  # noqa: E402
+from rclpy.duration import Duration  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
@@ -321,6 +322,73 @@ def test_bag_play_rejects_missing_topics_and_types(ros, trial, tmp_path):
         BagPlayNode(context=ros)
     with pytest.raises(FileNotFoundError):
         BagPlayNode(context=ros, parameter_overrides=[Parameter("bag", value=str(tmp_path / "missing.mcap"))])
+
+
+def test_backward_fit_keeps_every_frame_of_a_replay_through_a_stall(ros, trial):
+    """backward_fit is single-threaded and renders in its callbacks: its first frame (a new OpenGL context at
+    the camera's size, the model uploaded) took 0.95-1.2 s on a loaded machine and over 3 s beside a CPU hog,
+    while the replay went on at 10 frames/s. What arrives meanwhile waits in the subscriptions' queues:
+    a pose queue of 10 lost pose #1 (11 poses arrived), image #1 found no pose within max_dt and was dropped,
+    and the node fitted other frames than `uw-sil fit` (test_backward_graph_refits_... failed 1 run in 8, and
+    10 of 10 beside a busy loop per core); and a stall longer than idle_timeout made the node fit the one frame
+    it had, the replay's frames still queued, taking its own stall for the end of the bag.
+
+    Here the node's first frame lasts as long as the rest of the replay (frames 1-11, each acknowledged by the
+    node's readers) plus more than idle_timeout (the graphs' 3 s: a shorter one would make the test fail when
+    the loaded machine leaves the node without CPU for that long between two callbacks, which is not the
+    fault tested here); the time.sleep below stands for that slow render, it is not a wait for anything.
+    Then every frame must be paired, and the collection still be running. The input is read reliably, so
+    what could be lost is only what the node's queues cannot hold.
+    """
+    from uw_sil.nodes.backward_fit import BackwardFitNode
+    from uw_sil.nodes.bag_play import BagPlayNode
+    from uw_sil.nodes.graph import IDLE_TIMEOUT as idle
+
+    topics = ["/camera/image_raw", "/camera/camera_info", "/panel/pose"]
+    fit = BackwardFitNode(context=ros, parameter_overrides=[
+        Parameter("frames", value=13), Parameter("stride", value=1), Parameter("reliable_input", value=True),
+        Parameter("idle_timeout", value=idle)])
+    player = BagPlayNode(context=ros, parameter_overrides=[
+        Parameter("bag", value=str(trial)), Parameter("topics", value=topics)])
+    ex_play, ex_fit = SingleThreadedExecutor(context=ros), SingleThreadedExecutor(context=ros)
+    ex_play.add_node(player)
+    ex_fit.add_node(fit)
+    messages = [(m.topic, bytes(m.data)) for m in iter_raw(trial, topics)]
+    assert len(messages) == 36
+    sel, st = fit.selector, fit.sync.stats
+    real_offer, stalls = sel.offer, []
+
+    def publish(msgs):
+        for topic, data in msgs:
+            player.publishers_[topic].publish(data)
+        for pub in player.publishers_.values():
+            assert pub.wait_for_all_acked(Duration(seconds=TIMEOUT)), f"{pub.topic_name} not acked"
+
+    def slow_offer(sample):
+        if not stalls:
+            t0 = time.monotonic()
+            publish(messages[3:])             # frames 1-11 arrive while the node is busy with frame 0
+            time.sleep(idle + 0.5)            # the rest of the slow first render (no wait for anything)
+            stalls.append(time.monotonic() - t0)
+        return real_offer(sample)
+    sel.offer = slow_offer
+    try:
+        # matched on both sides (the player's writers and the node's readers) before the first message
+        spin_until(ex_play, lambda: all(p.get_subscription_count() > 0 for p in player.publishers_.values())
+                   and all(s.get_publisher_count() > 0 for s in fit.subs), what="the replay's topics matched")
+        publish(messages[:3])                 # frame 0: image, camera_info, pose
+        spin_until(ex_fit, lambda: fit.selector is not sel or sel.scanned + st.dropped >= 12,
+                   what="backward_fit to decide all 12 images (paired or dropped)",
+                   detail=lambda: f"received {st.received}, {st.matched} matched, dropped {st.dropped_no_partner}")
+    finally:
+        ex_play.shutdown()
+        ex_fit.shutdown()
+        player.destroy_node()
+        fit.destroy_node()
+    assert stalls and stalls[0] > idle
+    assert st.received == [12, 12, 12] and st.dropped == 0, (st.received, st.dropped_no_partner)
+    assert fit.selector is sel and fit.fit_thread is None, "fitted before the queued frames were taken"
+    assert sel.scanned == 12 and [f.index for f in sel.frames] == list(range(12))
 
 
 # ------------------------------------------------------------------------------------------ the graph

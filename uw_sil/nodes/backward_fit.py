@@ -231,17 +231,22 @@ class BackwardFitNode(Node):
         reliability = (ReliabilityPolicy.RELIABLE if self.get_parameter("reliable_input").value
                        else qos_profile_sensor_data.reliability)
         sensor = QoSProfile(depth=30, reliability=reliability, durability=qos_profile_sensor_data.durability)
+        # Poses (reliable) queue as deep as the images: the first frame's render (a new OpenGL context at the
+        # camera's size) took up to 1.2 s under load, and with a queue of 10 the 11th pose arriving meanwhile
+        # pushed out pose #1, so image #1 found no partner and was dropped.
+        poses = QoSProfile(depth=sensor.depth, reliability=ReliabilityPolicy.RELIABLE)
         topic, msg_type = TRANSPORTS[self.get_parameter("image_transport").value]
         self.subs = [self.create_subscription(msg_type, topic, lambda m: self._add(0, m), sensor)]
         if self.camera is None:
             self.subs.append(self.create_subscription(CameraInfo, "camera/camera_info", lambda m: self._add(1, m),
                                                       sensor))
         self.subs.append(self.create_subscription(PoseStamped, "panel/pose",
-                                                  lambda m: self._add(self._pose_stream, m), 10))
+                                                  lambda m: self._add(self._pose_stream, m), poses))
         self.create_service(Trigger, "~/start", self._on_start)
         self._last_progress = None
         self._collect_start = None   # monotonic time the current collection started
         self._last_input = None      # monotonic time of the last input message of the current collection
+        self._idle_from = None       # monotonic time the last input callback ended (what idle_timeout counts from)
         self.create_timer(2.0, self._log_progress)
         self.create_timer(0.5, self._check_idle)
         if self.get_parameter("auto_start").value:
@@ -314,7 +319,7 @@ class BackwardFitNode(Node):
                 return False, str(e)
             self.selector = selector
             self.sync = self._new_sync()
-            self._collect_start, self._last_input = time.monotonic(), None
+            self._collect_start, self._last_input, self._idle_from = time.monotonic(), None, None
         if isinstance(selector, SpreadCollector):
             text = (f"{stopped}collecting frames for the diagnosis ({selector.k} of them, spread over those "
                     f"received until the input pauses or {selector.max_scan} came)")
@@ -362,7 +367,7 @@ class BackwardFitNode(Node):
                 self._finish(False, f"failed: no frames arrived: no message on {topics} in {wait:g} s")
             return
         wait = self.get_parameter("idle_timeout").value
-        if wait > 0 and now - self._last_input >= wait:
+        if wait > 0 and now - max(self._last_input, self._idle_from or 0.0) >= wait:
             what = (f"diagnosing: {self._taken(sel)}" if isinstance(sel, SpreadCollector)
                     else f"fitting the {len(sel.frames)} of {sel.k} frames taken so far")
             self.get_logger().warning(f"no input for {wait:g} s: {what} ({self._inputs()})")
@@ -380,6 +385,11 @@ class BackwardFitNode(Node):
             self._last_info = (stamp, msg)
         for match in self.sync.add(stream, stamp, msg):
             self._offer(match)
+        # idle time counts from the end of the callback: while a frame renders (the first one took over 3 s
+        # under load) the input waits in the queues, and the idle timer, served before them, would take the
+        # node's own stall for the end of the bag
+        if self.selector is not None:
+            self._idle_from = time.monotonic()
 
     def _offer(self, match):
         sel = self.selector

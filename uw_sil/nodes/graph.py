@@ -124,6 +124,7 @@ def backward_graph(sim_params: Optional[str] = None, bag: Optional[str] = None, 
         # when none arrive at all
         fit["idle_timeout"] = IDLE_TIMEOUT
         fit["first_frame_timeout"] = 0.0 if start_paused else FIRST_FRAME_TIMEOUT
+        fit["reliable_input"] = True          # bag_play publishes reliably: a replay loses no frame
     if max_iter is not None:
         fit["max_iter"] = int(max_iter)
     if stride is not None:
