@@ -6,7 +6,6 @@ YAML instead of camera_info, and poses from the panel's markers (panel_pose).
 The trials are small (160x120; 320x240 where markers must be read) and the diagnosis budget is small (one
 effect, three candidates, few iterations) so that a graph test takes about a minute."""
 import json
-import os
 import re
 import sys
 import time
@@ -287,7 +286,7 @@ class Watcher:
         spin_until(self.ex, cond, timeout=timeout, what=what, detail=detail)
 
     def call_start(self, timeout: float = 30.0):
-        """~/start of backward_fit, answered (the Trigger response)."""
+        """The ~/start service of backward_fit, answered (the Trigger response)."""
         from std_srvs.srv import Trigger
 
         from rosproc import wait_future
@@ -564,7 +563,7 @@ def test_start_or_ctrl_c_stops_a_running_diagnosis(lamp_bag, tmp_path):
             j, stopped = watch.wait_status("stopped: the diagnosis, by ~/start", STOP_DEADLINE, since=i, proc=fit)
             t_stopped = time.monotonic()
             assert "nothing written or sent" in stopped, stopped
-            print(f"~/start: answered in {t_answer - t_ask:.2f} s; the diagnosis stopped {t_stopped - t_ask:.2f} s "
+            print(f"backward_fit ~/start: answered in {t_answer - t_ask:.2f} s; the diagnosis stopped {t_stopped - t_ask:.2f} s "
                   f"after the call ({stopped})")
             # the new collection takes the next replay and diagnoses it from the start
             plays.append(Proc(graph.command_line(specs["bag_play"]), env, name="bag_play (second replay)"))
