@@ -393,7 +393,7 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
         before = float(current.sel_pf.mean())
         before_E = current.ls_sel_E
         judge = JUDGES[e]
-        keep = crit == "residual"
+        keep = crit == "residual" and "ls_x" in r.extra      # (pose_error's own residual: it is absorbed)
         if keep:
             r_full = least_squares_model(job, r)
         if judge.kind == "theta" and not judge.absorb and job.max_iter > cheap.max_iter and not keep:
@@ -413,7 +413,7 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
             # the reference of the next round's residual evidence: the new model's least-squares fit polished
             # with the base fit's least-squares budget (a candidate's fit must not win by a longer polish alone)
             current = current_ls(job, with_effect(current, r), max_nfev=LS_BASE_NFEV)
-        say(f"round {rnd}: accepted {e} by held-out {'residual' if keep else 'θ'} (held-out θ {before:.4f} -> "
+        say(f"round {rnd}: accepted {e} by held-out {'residual' if crit == 'residual' else 'θ'} (held-out θ {before:.4f} -> "
             f"{current.sel_pf.mean():.4f}, residual {np.mean(before_E):.3g} -> {np.mean(current.ls_sel_E):.3g} "
             f"grey levels²)")
         accepted.append({"effect": e, "refit": r, "strength": strength, "margin": margin, "before": before,
