@@ -40,7 +40,7 @@ from ..sim.params import ParamSpace, UnderwaterParams
 __all__ = ["FitFrame", "FrameSelection", "FrameSelector", "select_frames", "BackwardObjective", "FitResult", "fit_frames",
            "fit_bag", "write_params_yaml", "read_params_yaml", "write_json_atomic", "DEFAULT_NODE_NAME", "FIT_TOL",
            "FIT_PATIENCE", "CMAES_PATIENCE", "CMAES_MIN_STEP", "LINEAR_START_SIGMA0", "LINEAR_START_STDS",
-           "spread_stride", "reduce_frame", "ReducedFitFrame", "ReducedRender"]
+           "spread_stride"]
 
 DEFAULT_NODE_NAME = "/**"
 
@@ -257,9 +257,6 @@ class BackwardObjective:
     batch : int
         Unused (kept for callers): candidates are simulated and scored one at a time, as planes
         (:meth:`uw_sil.sim.optics.PreparedRender.planar`, :meth:`uw_sil.metrics.theta.ThetaReference.score_planar`).
-
-    Frames may be :class:`ReducedFitFrame` (:func:`reduce_frame`): the model is then area-exact at the
-    silhouettes and the candidates are not rounded to 8 bits (the reduced real frame is a block mean).
     """
 
     def __init__(self, frames: list, space: ParamSpace, channels: str = "HSV", fog: str = "exp2",
@@ -273,8 +270,7 @@ class BackwardObjective:
             raise ValueError("no frames to fit")
         self.space = space
         self.frames = frames
-        self.prepared = [PreparedRender(f.render.rgb, f.render.range, f.render.depth, fog=fog,
-                                        cover=getattr(f.render, "cover", None)) for f in frames]
+        self.prepared = [PreparedRender(f.render.rgb, f.render.range, f.render.depth, fog=fog) for f in frames]
         if hist_pixels not in HIST_PIXELS:
             raise ValueError(f"hist_pixels must be one of {HIST_PIXELS}, got {hist_pixels!r}")
         self.hist_pixels = hist_pixels
@@ -289,9 +285,7 @@ class BackwardObjective:
         self.noise = [NoiseField(f.image.shape, s, seed=seed + i) if np.any(s > 0) else None
                       for i, (f, s) in enumerate(zip(frames, self.noise_sigma))]
         # The inner loop works on planes (3, H * W); the same realization, rearranged (NoiseField.apply is
-        # elementwise). Reduced frames (ReducedFitFrame) are averages over blocks, not 8-bit values: their
-        # candidates are not rounded.
-        self._quantize = [not isinstance(f, ReducedFitFrame) for f in frames]
+        # elementwise).
         for nf in self.noise:
             if nf is not None:
                 nf.field = np.ascontiguousarray(np.moveaxis(nf.field, -1, 0).reshape(nf.field.shape[-1], -1))
@@ -345,73 +339,18 @@ class BackwardObjective:
         from ..sim.params import validate_rgb_params
 
         Pw = validate_rgb_params(P[idx]).astype(np.float32)
-        for prep, ref, noise, (buf, work), quantize in zip(self.prepared, self._refs[w], self.noise, self._bufs[w],
-                                                            self._quantize):
+        for prep, ref, noise, (buf, work) in zip(self.prepared, self._refs[w], self.noise, self._bufs[w]):
             for j, p in zip(idx, Pw):
                 prep.planar(p, out=buf, work=work)
                 buf *= 255.0
                 if noise is not None:
-                    noise.apply(buf, quantize=quantize)
+                    noise.apply(buf)
                 acc[j] += ref.score_planar(buf)
 
     def close(self):
         if self._pool is not None:
             self._pool.shutdown()
             self._pool = None
-
-
-@dataclass
-class ReducedRender:
-    """A render box-downsampled by ``factor`` (:func:`reduce_frame`): ``rgb``, ``range`` and ``depth`` averaged
-    over the model pixels of each block (``inf`` where none), ``cover`` the block's fraction on the model,
-    ``labels`` the label of the block's centre pixel where ``cover >= 0.5``, else 0."""
-
-    rgb: np.ndarray
-    range: np.ndarray
-    depth: np.ndarray
-    labels: np.ndarray
-    cover: np.ndarray
-
-
-@dataclass
-class ReducedFitFrame(FitFrame):
-    """A :class:`FitFrame` box-downsampled by ``factor``: ``image`` is float32 (block means, 0..255),
-    ``render`` a :class:`ReducedRender`."""
-
-    factor: int = 1
-
-
-def reduce_frame(frame: FitFrame, factor: int) -> FitFrame:
-    """The frame and its render averaged over ``factor x factor`` blocks (the coarse stage of :func:`fit_frames`).
-
-    The underwater model on such a block, ``b + cover * T * (i - b)`` (:class:`uw_sil.sim.optics.PreparedRender`
-    with ``cover``), is the block average of the full-resolution model where the transmission is constant over
-    the block; rendering at the reduced size instead would alias the silhouettes while the real frame's are
-    area-averaged.
-    """
-    from .residuals import box_down
-
-    f = int(factor)
-    if f <= 1:
-        return frame
-    rr = frame.render
-    hit = np.isfinite(rr.range) & np.isfinite(rr.depth)
-    cover = box_down(hit, f)
-    safe = np.maximum(cover, np.float32(1e-6))
-    rgb = box_down(np.where(hit[..., None], rr.rgb, 0.0), f) / safe[..., None]
-    rng = box_down(np.where(hit, rr.range, 0.0), f) / safe
-    dep = box_down(np.where(hit, rr.depth, 0.0), f) / safe
-    none = cover <= 0
-    rgb[none] = 0.0
-    rng[none] = np.inf
-    dep[none] = np.inf
-    h, w = cover.shape
-    c = f // 2
-    labels = np.where(cover >= 0.5, rr.labels[c:h * f:f, c:w * f:f][:h, :w], 0).astype(np.uint8)
-    render = ReducedRender(np.clip(rgb, 0.0, 1.0).astype(np.float32), rng.astype(np.float32),
-                           dep.astype(np.float32), labels, np.clip(cover, 0.0, 1.0).astype(np.float32))
-    return ReducedFitFrame(frame.index, frame.stamp_ns, box_down(frame.image, f), render, frame.coverage,
-                           frame.image_index, frame.pose_info, factor=f)
 
 
 @dataclass
