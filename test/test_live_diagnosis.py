@@ -395,6 +395,15 @@ def _check_live_diagnosis(watch, launch, out, samples, what):
     return doc
 
 
+def _launch_diagnose_args(graph: str, bag, tmp_path) -> list:
+    """`uw-sil launch <graph> --diagnose` on ``bag`` with the tests' budget, outputs into ``tmp_path``."""
+    args = [sys.executable, "-m", "uw_sil.cli", "launch", graph, "--bag", str(bag), "--diagnose",
+            "--keep-running", "--output-yaml", str(tmp_path / "ext.yaml"), "--output-json", str(tmp_path / "diag.json")]
+    for k, v in BUDGET.items():
+        args += ["--" + k.replace("_", "-"), str(v)]
+    return args
+
+
 @pytest.mark.slow
 def test_uw_sil_launch_backward_diagnose(lamp_bag, tmp_path):
     """`uw-sil launch backward --diagnose` on a lamp-lit trial (raw images, recorded poses)."""
@@ -404,10 +413,7 @@ def test_uw_sil_launch_backward_diagnose(lamp_bag, tmp_path):
     from rosproc import Proc, assert_clean_output, domain_id, logs_on_failure, ros_env
 
     domain = domain_id()
-    args = [sys.executable, "-m", "uw_sil.cli", "launch", "backward", "--bag", str(lamp_bag), "--diagnose",
-            "--keep-running", "--output-yaml", str(tmp_path / "ext.yaml"), "--output-json", str(tmp_path / "diag.json")]
-    for k, v in BUDGET.items():
-        args += ["--" + k.replace("_", "-"), str(v)]
+    args = _launch_diagnose_args("backward", lamp_bag, tmp_path)
     watch = Watcher(domain)
     launch = Proc(args, ros_env(domain), name="uw-sil launch backward --diagnose")
     try:
@@ -606,10 +612,7 @@ def test_uw_sil_launch_sil_diagnose_restores_with_the_extended_model(lamp_bag, t
     from uw_sil.bags.imgmsg import rgb_to_image_fields
 
     domain = domain_id()
-    args = [sys.executable, "-m", "uw_sil.cli", "launch", "sil", "--bag", str(lamp_bag), "--diagnose",
-            "--keep-running", "--output-yaml", str(tmp_path / "ext.yaml"), "--output-json", str(tmp_path / "diag.json")]
-    for k, v in BUDGET.items():
-        args += ["--" + k.replace("_", "-"), str(v)]
+    args = _launch_diagnose_args("sil", lamp_bag, tmp_path)
     watch = Watcher(domain)
     enh_status, enhanced = [], {}
     watch.node.create_subscription(String, "/enhancer/status", lambda m: enh_status.append(json.loads(m.data)),
