@@ -106,14 +106,13 @@ class FrameObjective:
 
     def __init__(self, rframes, model, noise, seed: int = 0, channels: str = "HSV", batch: int = 16,
                  workers: Optional[int] = None):
-        from ..metrics.theta import ThetaReference
         from ..sim.noise import NoiseField
 
         self.rframes = list(rframes)
         self.model = model
         self.workers = default_threads(workers)
-        self._refs = [[ThetaReference(rf.image, channels=channels, hist_mask=_hist_masks(rf))
-                       for rf in self.rframes] for _ in range(self.workers)]
+        refs = [theta_reference(rf, channels) for rf in self.rframes]
+        self._refs = [[r.fork() for r in refs] for _ in range(self.workers)]
         self.noise = [None if model.owns_noise or not np.any(np.asarray(s) > 0) else
                       NoiseField(rf.shape + (3,), s, seed=seed + 7919 * i)
                       for i, (rf, s) in enumerate(zip(self.rframes, noise))]
@@ -173,6 +172,20 @@ class FrameObjective:
 
     def __exit__(self, *exc):
         self.close()
+
+
+def theta_reference(rf: ReducedFrame, channels: str = "HSV"):
+    """The θ reference of a reduced frame (its phase congruency, gradients and histograms), built once per
+    frame and kept with it: every candidate model of a diagnosis is scored against the same frames, so
+    objectives take :meth:`~uw_sil.metrics.theta.ThetaReference.fork` copies (bit-identical scores, own work
+    buffers) instead of recomputing it. The kept reference itself is never evaluated (thread safety)."""
+    from ..metrics.theta import ThetaReference
+
+    key = ("theta_reference", channels)
+    ref = rf.extra.get(key)
+    if ref is None:
+        ref = rf.extra[key] = ThetaReference(rf.image, channels=channels, hist_mask=_hist_masks(rf))
+    return ref
 
 
 def _hist_masks(rf: ReducedFrame):
@@ -381,19 +394,32 @@ def ls_fit(model: "EffectModel", x0, stride: int = 2, max_nfev: int = 12, interr
     lo, hi = model.bounds()
     x0 = np.clip(np.asarray(x0, float), lo + 1e-9 * (hi - lo), hi - 1e-9 * (hi - lo))
     reals = [rf.image[stride // 2::stride, stride // 2::stride] for rf in model.rframes]
+    last = {}
 
-    def resid(x):
+    def resids(X):
+        """residuals of the vectors X (N, d): (N, n), one batched simulation per frame"""
         if interrupt is not None:
             interrupt()
-        out = []
-        for k, R in enumerate(reals):
-            I = model.simulate(k, x[None])[0][stride // 2::stride, stride // 2::stride]
-            out.append((I * 255.0 - R).ravel())
-        return np.concatenate(out)
+        out = [(model.simulate(k, X)[:, stride // 2::stride, stride // 2::stride] * 255.0 - R[None]).reshape(len(X), -1)
+               for k, R in enumerate(reals)]
+        return np.concatenate(out, axis=1)
+
+    def resid(x):
+        last["x"], last["f"] = x.copy(), resids(x[None])[0]
+        return last["f"]
+
+    def jac(x):
+        # forward differences (relative step 2e-3, stepping away from a bound it would cross), all d steps in
+        # one batched simulation instead of d separate ones; least_squares evaluates f(x) just before
+        f0 = last["f"] if "x" in last and np.array_equal(last["x"], x) else resid(x)
+        h = 2e-3 * np.maximum(1.0, np.abs(x))
+        h = np.where(x + h > hi, -h, h)
+        F = resids(x[None] + np.diag(h))
+        return ((F - f0[None]) / h[:, None]).T
 
     try:
-        r = least_squares(resid, x0, bounds=(lo, hi), method="trf", x_scale=np.maximum(hi - lo, 1e-6) * 0.1,
-                          diff_step=2e-3, max_nfev=max_nfev, xtol=1e-4, ftol=1e-4)
+        r = least_squares(resid, x0, jac=jac, bounds=(lo, hi), method="trf",
+                          x_scale=np.maximum(hi - lo, 1e-6) * 0.1, max_nfev=max_nfev, xtol=1e-4, ftol=1e-4)
     except (ValueError, FloatingPointError):
         return x0
     return r.x
