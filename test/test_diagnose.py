@@ -259,6 +259,35 @@ def test_a_nested_model_never_ends_below_the_model_it_contains(bags, monkeypatch
     assert doc["verdict"] == []
 
 
+def test_backward_elimination_drops_an_effect_a_later_one_explains(bags, monkeypatch):
+    """Plant a spurious first acceptance (the lamps taken in round 1 on a vignetting-only trial, whatever their
+    evidence): vignetting joins in round 2, and backward elimination must drop the lamps (the model without
+    them, refitted, is as good on the held-out frames): the final model and the verdict are vignetting alone.
+    Without the elimination the lamps would stay in the verdict."""
+    import uw_sil.fit.judges as jd
+    from uw_sil.fit.diagnose import diagnose_bag
+
+    cls = type(jd.JUDGES["artificial_light"])
+    real = cls.accept
+
+    def planted(self, r, current, margin, residual=None):
+        if not current.effects:                    # the forward selection's first round
+            return True, 1e3, "theta"
+        return real(self, r, current, margin, residual)
+
+    monkeypatch.setattr(cls, "accept", planted)
+    doc = diagnose_bag(bags["vignetting"], k=6, effects_allowed=["artificial_light", "vignetting"]).to_json()
+    chosen = [s["chosen"] for s in doc["selection"]]
+    assert chosen[:2] == ["artificial_light", "vignetting"], doc["selection"]
+    elim = [c for c in doc["candidates"] if c.get("elimination")]
+    assert [(c["effect"], c["accepted"]) for c in elim] == [("artificial_light", False)], elim
+    assert "-artificial_light" in chosen
+    assert doc["final"]["effects"] == ["vignetting"]
+    assert [v["effect"] for v in doc["verdict"]] == ["vignetting"]
+    assert not [k for k in doc["final"]["params"] if k.startswith("artificial_light.")]
+    assert any(k.startswith("vignetting.") for k in doc["final"]["params"])
+
+
 def test_doubts_lower_confidence():
     """A fitted value on its box bound or outside deep-sea ranges is said, and costs confidence."""
     from uw_sil.fit.diagnose import _confidence, base_doubts
@@ -339,6 +368,12 @@ def test_residual_evidence_accepts_what_theta_cannot_see():
     assert j.accept(spread, cur, 0.003, residual_gain(cur, spread, 14))[0] is False
     edges = Judge()                                              # blur, geometry, pose: θ only
     assert edges.accept(strong, cur, 0.003, residual_gain(cur, strong, 14))[0] is False
+    # the residual speaks where θ is blind, not against it: the same residual gain with held-out θ of the
+    # refit lower beyond the margin is refused, within the margin taken
+    against = refit(cur.ls_sel_E * np.array([1.32, 0.14, 0.30, 0.22]), theta=0.75)
+    assert j.accept(against, cur, 0.003, residual_gain(cur, against, 14))[0] is False
+    blind = refit(cur.ls_sel_E * np.array([1.32, 0.14, 0.30, 0.22]), theta=0.798)
+    assert j.accept(blind, cur, 0.003, residual_gain(cur, blind, 14))[::2] == (True, "residual")
     assert residual_gain(cur, refit(None)) is None
     assert j.accept(refit(None), cur, 0.003, None)[0] is False
     assert j.accept(refit(None, theta=0.81), cur, 0.003, None)[::2] == (True, "theta")

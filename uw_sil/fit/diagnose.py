@@ -17,10 +17,13 @@ camera info and panel poses, and the scene model; never a ground-truth sidecar):
    the base fit; the effect that raises held-out θ most beyond its noise margin joins the model (the margin:
    a bootstrap over held-out frames of the per-frame gains, with the normal quantile corrected for the
    number of candidates of the round, and at least :data:`uw_sil.fit.judges.base.MIN_MARGIN`); the model
-   is refitted jointly with it, and the next round tries the remaining effects that helped in the first one,
-   until none beats its margin or ``max_effects`` are in. A refit never ends below the model it contains on
-   the fit frames (:func:`uw_sil.fit.judges.base.theta_refit`). A pose correction, once accepted, is applied
-   to the frames' geometry.
+   is refitted jointly with it, and the next round tries the :data:`LATER_CANDIDATES` remaining effects with
+   the best evidence in their latest refit, until none beats its margin or ``max_effects`` are in. A refit
+   never ends below the model it contains on the fit frames (:func:`uw_sil.fit.judges.base.theta_refit`). A
+   pose correction, once accepted, is applied to the frames' geometry. Then **backward elimination**: every
+   effect accepted before the last must still beat its margin against the final model without it, refitted
+   (:func:`uw_sil.fit.judges.base.refit_without`), or it is dropped (a lamp footprint first taken for
+   vignetting, then explained by the lamps).
 5. **effects new in every frame** (particles, temporal noise) are judged last, on held-out *statistics*
    (speck density, noise level, correlation and fixed patterns): a pixel-wise θ cannot rise for them.
 6. **say it**: a plain-language verdict with numbers and doubts (parameters on a bound or outside deep-sea
@@ -214,8 +217,8 @@ def _particle_blocks(ctx, sigs: dict, factor: int):
 
 #: Patience of every optimizer run of the diagnosis (base and candidates alike: a fair comparison).
 PATIENCE = 6
-#: Candidates carried into the rounds after the first: those that raised held-out θ in the first round,
-#: best first (the first round refits every effect).
+#: Candidates of the rounds after the first: the remaining effects with the best held-out evidence in their
+#: latest refit, best first (the first round refits every effect).
 LATER_CANDIDATES = 3
 #: Least-squares iterations of the current model's fit, the reference of the held-out residual criterion
 #: (the candidates' least-squares fits start from it with their effect neutral, and from their own starts).
@@ -288,8 +291,8 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
     from ..sim.params import ParamSpace
     from .backward import linear_start
     from .judges import JUDGES, Current, Job, margin_for
-    from .judges.base import (current_ls, gain_words, least_squares_model, residual_gain, residual_improvement,
-                              with_effect)
+    from .judges.base import (Refit, current_ls, gain_words, least_squares_model, refit_without,
+                              residual_gain, residual_improvement, with_effect)
     from .residuals import added_surface
     from .screening import screen_proxies
     from .signatures import SignatureContext, run_signatures
@@ -350,79 +353,129 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
     order = {e: JUDGES[e].order(job) for e in allowed}
     pool = sorted((e for e in allowed if JUDGES[e].kind == "theta"), key=lambda e: -order[e])
     stat_effects = [e for e in allowed if JUDGES[e].kind == "statistic"]
-    candidates, steps, accepted, first = [], [], [], {}
+    candidates, steps, accepted, latest = [], [], [], {}
     fits = {"base": {"x": base_fit.x, "held_pf": base_sel_pf, "model": empty, "model_effects": []}}
     rnd = 0
-    while pool and len(accepted) < max_effects:
-        rnd += 1
-        cands = pool if rnd == 1 else sorted((e for e in pool if first.get(e, 0) > 0), key=lambda e: -first[e])
-        cands = cands[:len(pool) if rnd == 1 else later_candidates]
-        if not cands:
+    checked = ()
+    while True:
+        while pool and len(accepted) < max_effects:
+            rnd += 1
+            # later rounds: the remaining effects with the best evidence of their latest refit, whatever its sign (an
+            # effect can hide behind a stronger one until that one is modelled: β_B ≠ β_D behind strong lamps)
+            cands = pool if rnd == 1 else sorted(pool, key=lambda e: -latest.get(e, -np.inf))[:later_candidates]
+            if not cands:
+                break
+            t0 = time.perf_counter()
+            results = {}
+            cheap = replace(job, max_iter=min(job.max_iter, CHEAP_ITER))
+            for e in cands:
+                say(f"round {rnd}: refitting {current.name} + {e}")
+                results[e] = JUDGES[e].refit(cheap, current)
+            best, rows = None, []
+            for e, r in results.items():
+                # two held-out tests per candidate (θ and the residual): both margins corrected for 2 x candidates
+                margin = margin_for(r.sel_pf - current.sel_pf, 2 * len(cands), seed=seed)
+                imp = residual_improvement(current, r)
+                rgain = residual_gain(current, r, 2 * len(cands), seed=seed)
+                ok, strength, crit = JUDGES[e].accept(r, current, margin, rgain)
+                latest[e] = float(np.mean(r.sel_pf - current.sel_pf)) if not ok else max(strength, 1e-6)
+                rows.append(_candidate_row(rnd, current, e, r, margin, ok, strength, crit, imp, rgain))
+                # θ, the paper's criterion, first: the residual decides only where no candidate raised θ (it
+                # is the likelihood of the dark, noisy frames θ is blind to, not a rival ranking of the others)
+                if ok and (best is None or (crit == "theta", strength) > (best[4] == "theta", best[2])):
+                    best = (e, r, strength, margin, crit)
+            candidates += rows
+            steps.append({"round": rnd, "model": current.name, "theta_heldout": float(current.sel_pf.mean()),
+                          "residual_heldout": float(np.mean(current.ls_sel_E)),
+                          "theta_train": current.theta_fit, "tried": [row["effect"] for row in rows],
+                          "chosen": best[0] if best else None, "time_s": time.perf_counter() - t0})
+            timing[f"round_{rnd}_s"] = time.perf_counter() - t0
+            if best is None:
+                say(f"round {rnd}: no effect raised held-out θ or lowered the held-out residual beyond its margin; "
+                    f"selection ends")
+                break
+            e, r, strength, margin, crit = best
+            before = float(current.sel_pf.mean())
+            before_E = current.ls_sel_E
+            judge = JUDGES[e]
+            keep = crit == "residual" and "ls_x" in r.extra      # (pose_error's own residual: it is absorbed)
+            if keep:
+                r_full = least_squares_model(job, r)
+            if judge.kind == "theta" and not judge.absorb and job.max_iter > cheap.max_iter and not keep:
+                say(f"round {rnd}: refitting {current.name} + {e} with the full budget")
+                starts = ([r.extra["ls_x"]] if "ls_x" in r.extra else []) + ([] if r.started_at_current else [r.x])
+                r_full = judge.refit(job, current, x_starts=starts)
+                r_full.extra.update({k: v for k, v in r.extra.items() if k.startswith("ls_")})
+            if keep or (judge.kind == "theta" and not judge.absorb and job.max_iter > cheap.max_iter):
+                candidates.append({**_candidate_row(rnd, current, e, r_full, margin, True, strength, crit,
+                                                    residual_improvement(current, r_full),
+                                                    residual_gain(current, r_full)), "full_refit": True})
+                r = r_full
+            if judge.absorb:
+                job, current = judge.absorb_into(job, current, r)
+                current = current_ls(job, current, max_nfev=LS_BASE_NFEV)
+            else:
+                # the reference of the next round's residual evidence: the new model's least-squares fit polished
+                # with the base fit's least-squares budget (a candidate's fit must not win by a longer polish alone)
+                current = current_ls(job, with_effect(current, r), max_nfev=LS_BASE_NFEV)
+            how = "residual" if crit == "residual" else "θ"
+            say(f"round {rnd}: accepted {e} by held-out {how} (held-out θ {before:.4f} -> {current.sel_pf.mean():.4f}, "
+                f"residual {np.mean(before_E):.3g} -> {np.mean(current.ls_sel_E):.3g} grey levels²)")
+            accepted.append({"effect": e, "refit": r, "strength": strength, "margin": margin, "before": before,
+                             "after": float(current.sel_pf.mean()), "criterion": crit,
+                             "residual_before": float(np.mean(before_E)),
+                             "residual_after": float(np.mean(current.ls_sel_E))})
+            fits[current.name] = {"x": r.x, "held_pf": np.asarray(r.sel_pf), "model": r.model,
+                                  "model_effects": list(r.effects)}
+            pool.remove(e)
+
+        # ---------------------------------------------------------------- backward elimination on held-out frames
+        # An effect accepted before a later one may be explained by it (the footprint of lamps accepted as
+        # vignetting, then the lamps): each earlier one must still beat its margin against the model without it,
+        # refitted, by the rule that accepted it (θ, else the residual).
+        elim = [a for a in accepted if a["effect"] in current.effects][:-1]
+        dropped = False
+        if elim and tuple(current.effects) != checked:
+            checked = tuple(current.effects)
+            t_el = time.perf_counter()
+            cheap = replace(job, max_iter=min(job.max_iter, CHEAP_ITER))
+            m = 2 * len(elim)
+            for a in elim:
+                e = a["effect"]
+                t0 = time.perf_counter()
+                say(f"elimination: refitting {current.name} without {e}")
+                reduced = refit_without(cheap, current, e, LS_BASE_NFEV)
+                if reduced is None:
+                    continue
+                params = {"base": dict(zip(RGB_NAMES, map(float, current.base))),
+                          "effects": {n: dict(v) for n, v in current.values.items()}}
+                full = Refit(effect=e, effects=current.effects, x=current.x, params=params,
+                             theta_fit=current.theta_fit, sel_pf=current.sel_pf, model=current.model,
+                             extra={"ls_sel_E": current.ls_sel_E})
+                margin = margin_for(current.sel_pf - reduced.sel_pf, m, seed=seed)
+                rgain = residual_gain(reduced, full, m, seed=seed)
+                ok, strength, crit = JUDGES[e].accept(full, reduced, margin, rgain)
+                candidates.append({**_candidate_row(rnd + 1, reduced, e, full, margin, ok, strength, crit,
+                                                    residual_improvement(reduced, full), rgain), "elimination": True})
+                steps.append({"round": "elimination", "model": reduced.name,
+                              "theta_heldout": float(reduced.sel_pf.mean()),
+                              "residual_heldout": float(np.mean(reduced.ls_sel_E)), "theta_train": reduced.theta_fit,
+                              "tried": [e], "chosen": None if ok else f"-{e}", "time_s": time.perf_counter() - t0})
+                if ok:
+                    how = "residual" if crit == "residual" else "θ"
+                    say(f"elimination: {e} kept (held-out {how} beyond its margin without it)")
+                    continue
+                say(f"elimination: {e} dropped: the model without it, refitted, is as good on the held-out frames "
+                    f"(θ {reduced.sel_pf.mean():.4f} vs {current.sel_pf.mean():.4f})")
+                accepted.remove(a)
+                current, dropped = reduced, True
+                fits[current.name] = {"x": current.x, "held_pf": np.asarray(current.sel_pf), "model": current.model,
+                                      "model_effects": list(current.effects)}
+            checked = tuple(current.effects)        # (judged: a later elimination only after a new effect)
+            timing["elimination_s"] = timing.get("elimination_s", 0.0) + time.perf_counter() - t_el
+        # a dropped effect frees a place: the forward selection goes on from the smaller model
+        if not (dropped and pool and len(accepted) < max_effects):
             break
-        t0 = time.perf_counter()
-        results = {}
-        cheap = replace(job, max_iter=min(job.max_iter, CHEAP_ITER))
-        for e in cands:
-            say(f"round {rnd}: refitting {current.name} + {e}")
-            results[e] = JUDGES[e].refit(cheap, current)
-        best, rows = None, []
-        for e, r in results.items():
-            # two held-out tests per candidate (θ and the residual): both margins corrected for 2 x candidates
-            margin = margin_for(r.sel_pf - current.sel_pf, 2 * len(cands), seed=seed)
-            imp = residual_improvement(current, r)
-            rgain = residual_gain(current, r, 2 * len(cands), seed=seed)
-            ok, strength, crit = JUDGES[e].accept(r, current, margin, rgain)
-            if rnd == 1:
-                first[e] = float(np.mean(r.sel_pf - current.sel_pf)) if not ok else max(strength, 1e-6)
-            rows.append(_candidate_row(rnd, current, e, r, margin, ok, strength, crit, imp, rgain))
-            # θ, the paper's criterion, first: the residual decides only where no candidate raised θ (it
-            # is the likelihood of the dark, noisy frames θ is blind to, not a rival ranking of the others)
-            if ok and (best is None or (crit == "theta", strength) > (best[4] == "theta", best[2])):
-                best = (e, r, strength, margin, crit)
-        candidates += rows
-        steps.append({"round": rnd, "model": current.name, "theta_heldout": float(current.sel_pf.mean()),
-                      "residual_heldout": float(np.mean(current.ls_sel_E)),
-                      "theta_train": current.theta_fit, "tried": [row["effect"] for row in rows],
-                      "chosen": best[0] if best else None, "time_s": time.perf_counter() - t0})
-        timing[f"round_{rnd}_s"] = time.perf_counter() - t0
-        if best is None:
-            say(f"round {rnd}: no effect raised held-out θ or lowered the held-out residual beyond its margin; "
-                f"selection ends")
-            break
-        e, r, strength, margin, crit = best
-        before = float(current.sel_pf.mean())
-        before_E = current.ls_sel_E
-        judge = JUDGES[e]
-        keep = crit == "residual" and "ls_x" in r.extra      # (pose_error's own residual: it is absorbed)
-        if keep:
-            r_full = least_squares_model(job, r)
-        if judge.kind == "theta" and not judge.absorb and job.max_iter > cheap.max_iter and not keep:
-            say(f"round {rnd}: refitting {current.name} + {e} with the full budget")
-            starts = ([r.extra["ls_x"]] if "ls_x" in r.extra else []) + ([] if r.started_at_current else [r.x])
-            r_full = judge.refit(job, current, x_starts=starts)
-            r_full.extra.update({k: v for k, v in r.extra.items() if k.startswith("ls_")})
-        if keep or (judge.kind == "theta" and not judge.absorb and job.max_iter > cheap.max_iter):
-            candidates.append({**_candidate_row(rnd, current, e, r_full, margin, True, strength, crit,
-                                                residual_improvement(current, r_full),
-                                                residual_gain(current, r_full)), "full_refit": True})
-            r = r_full
-        if judge.absorb:
-            job, current = judge.absorb_into(job, current, r)
-            current = current_ls(job, current, max_nfev=LS_BASE_NFEV)
-        else:
-            # the reference of the next round's residual evidence: the new model's least-squares fit polished
-            # with the base fit's least-squares budget (a candidate's fit must not win by a longer polish alone)
-            current = current_ls(job, with_effect(current, r), max_nfev=LS_BASE_NFEV)
-        say(f"round {rnd}: accepted {e} by held-out {'residual' if crit == 'residual' else 'θ'} (held-out θ {before:.4f} -> "
-            f"{current.sel_pf.mean():.4f}, residual {np.mean(before_E):.3g} -> {np.mean(current.ls_sel_E):.3g} "
-            f"grey levels²)")
-        accepted.append({"effect": e, "refit": r, "strength": strength, "margin": margin, "before": before,
-                         "after": float(current.sel_pf.mean()), "criterion": crit,
-                         "residual_before": float(np.mean(before_E)),
-                         "residual_after": float(np.mean(current.ls_sel_E))})
-        fits[current.name] = {"x": r.x, "held_pf": np.asarray(r.sel_pf), "model": r.model,
-                              "model_effects": list(r.effects)}
-        pool.remove(e)
 
     # ---------------------------------------------------------------- effects new in every frame: statistics
     t0 = time.perf_counter()

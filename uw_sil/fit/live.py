@@ -128,6 +128,13 @@ def diagnostic_statuses(doc: dict, node: str = "backward_fit") -> list:
                 values["doubts"] = v["doubts"]
             out.append(_status(WARN, f"{STATUS_PREFIX}: {effect}", v["explanation"], node, values))
             continue
+        dropped = [c for c in rows if c.get("elimination") and not c.get("accepted")]
+        if dropped:
+            c = dropped[-1]
+            out.append(_status(OK, f"{STATUS_PREFIX}: {effect}", f"dropped: accepted first, then the model without "
+                               f"it ({c['model']}, refitted) did as well on the held-out frames", node,
+                               {"delta_heldout": c["delta_heldout"], "margin": c.get("margin", 0.0)}))
+            continue
         best = max(rows, key=lambda c: c["delta_heldout"])
         crit = "held-out statistic" if best.get("criterion") == "statistic" else "held-out θ"
         gain, margin = best["delta_heldout"], best.get("margin", 0.0)
