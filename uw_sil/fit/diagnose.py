@@ -119,6 +119,11 @@ class Diagnosis:
         for v in self.verdict:
             lines.append(f"verdict: {v['effect']} (confidence {v['confidence']:.2f}): {v['explanation']}")
         for c in self.candidates:
+            if c.get("elimination"):
+                lines.append(f"  elimination: {c['model']} + {c['effect']:<13s} against the model without it: "
+                             f"held-out θ {c['theta_heldout']:.4f} (Δ {c['delta_heldout']:+.4f}, margin "
+                             f"{c.get('margin', 0):.4f}) {'kept' if c.get('accepted') else 'dropped'}")
+                continue
             lines.append(f"  round {c.get('round', 1)}: {c.get('model', 'base')} + {c['effect']:<24s} held-out θ "
                          f"{c['theta_heldout']:.4f} (Δ {c['delta_heldout']:+.4f}, margin {c.get('margin', 0):.4f})"
                          + (" accepted" if c.get("accepted") else ""))
@@ -354,7 +359,8 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
     pool = sorted((e for e in allowed if JUDGES[e].kind == "theta"), key=lambda e: -order[e])
     stat_effects = [e for e in allowed if JUDGES[e].kind == "statistic"]
     candidates, steps, accepted, latest = [], [], [], {}
-    fits = {"base": {"x": base_fit.x, "held_pf": base_sel_pf, "model": empty, "model_effects": []}}
+    fits = {"base": {"x": base_fit.x, "held_pf": base_sel_pf, "model": empty, "model_effects": [],
+                     "held_E": base_sel_E}}
     rnd = 0
     checked = ()
     while True:
@@ -426,7 +432,7 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
                              "residual_before": float(np.mean(before_E)),
                              "residual_after": float(np.mean(current.ls_sel_E))})
             fits[current.name] = {"x": r.x, "held_pf": np.asarray(r.sel_pf), "model": r.model,
-                                  "model_effects": list(r.effects)}
+                                  "model_effects": list(r.effects), "held_E": np.asarray(current.ls_sel_E)}
             pool.remove(e)
 
         # ---------------------------------------------------------------- backward elimination on held-out frames
@@ -456,7 +462,8 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
                 rgain = residual_gain(reduced, full, m, seed=seed)
                 ok, strength, crit = JUDGES[e].accept(full, reduced, margin, rgain)
                 candidates.append({**_candidate_row(rnd + 1, reduced, e, full, margin, ok, strength, crit,
-                                                    residual_improvement(reduced, full), rgain), "elimination": True})
+                                                    residual_improvement(reduced, full), rgain), "round": "elimination",
+                                   "elimination": True})
                 steps.append({"round": "elimination", "model": reduced.name,
                               "theta_heldout": float(reduced.sel_pf.mean()),
                               "residual_heldout": float(np.mean(reduced.ls_sel_E)), "theta_train": reduced.theta_fit,
@@ -470,7 +477,7 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
                 accepted.remove(a)
                 current, dropped = reduced, True
                 fits[current.name] = {"x": current.x, "held_pf": np.asarray(current.sel_pf), "model": current.model,
-                                      "model_effects": list(current.effects)}
+                                      "model_effects": list(current.effects), "held_E": np.asarray(current.ls_sel_E)}
             checked = tuple(current.effects)        # (judged: a later elimination only after a new effect)
             timing["elimination_s"] = timing.get("elimination_s", 0.0) + time.perf_counter() - t_el
         # a dropped effect frees a place: the forward selection goes on from the smaller model

@@ -158,7 +158,7 @@ def heldout_figure(diag):
     base = F["base_held_pf"]
     fits = F["fits"]
     names = [n for n in fits if n != "base"]          # the selection path: base + e1, base + e1 + e2, ...
-    fig, axes = plt.subplots(1, 2, figsize=(11, 3.8))
+    fig, axes = plt.subplots(1, 3, figsize=(15, 3.8))
     ax = axes[0]
     x = np.arange(len(base))
     ax.plot(x, base, "ko-", label=f"base ({base.mean():.4f})")
@@ -181,6 +181,15 @@ def heldout_figure(diag):
     ax.set_xticklabels(labels, rotation=20, fontsize=7, ha="right")
     ax.set_title("held-out θ along the selection (green: final model)", fontsize=9)
     ax.legend(fontsize=7)
+    # the other held-out criterion: the least-squares fits' mean squared residual, pooled over the frames
+    ax = axes[2]
+    E = [float(np.mean(fits[n]["held_E"])) if fits[n].get("held_E") is not None else np.nan
+         for n in ["base"] + names]
+    ax.bar(range(len(E)), E, color=colors)
+    ax.set_xticks(range(len(E)))
+    ax.set_xticklabels(labels, rotation=20, fontsize=7, ha="right")
+    ax.set_ylabel("grey levels²")
+    ax.set_title("held-out residual of the least-squares fits (lower is better)", fontsize=9)
     fig.tight_layout()
     return fig
 
