@@ -251,7 +251,7 @@ def base_doubts(base: dict) -> list:
             f"green 0.07-0.2, blue 0.03-0.15 /m): the base model absorbs physics it lacks"]
 
 
-def _candidate_row(rnd: int, current, e: str, r, margin: float, ok: bool, strength: float, criterion: str,
+def _candidate_row(rnd, current, e: str, r, margin: float, ok: bool, strength: float, criterion: str,
                    imp=None, rgain=None) -> dict:
     gain_pf = r.sel_pf - current.sel_pf
     row = {"round": rnd, "model": current.name, "effect": e, "theta_train": r.theta_fit,
@@ -269,6 +269,50 @@ def _candidate_row(rnd: int, current, e: str, r, margin: float, ok: bool, streng
     if r.extra:
         row["fit"] = {k: v for k, v in r.extra.items() if isinstance(v, (int, float, str))}
     return row
+
+
+def _eliminate(job, current, accepted: list, seed: int, say, candidates: list, steps: list, fits: dict) -> tuple:
+    """Backward elimination on held-out frames: an effect accepted before a later one may be explained by it
+    (the footprint of lamps accepted as vignetting, then the lamps). Each earlier one must still beat its
+    margin against the model without it, refitted (:func:`uw_sil.fit.judges.base.refit_without`), by the rule
+    that accepted it (θ, else the residual), or it is dropped (removed from ``accepted``). Appends to
+    ``candidates``, ``steps`` and ``fits``; returns ``(current, dropped)``."""
+    from .judges import JUDGES, margin_for
+    from .judges.base import Refit, refit_without, residual_gain, residual_improvement
+
+    elim = [a for a in accepted if a["effect"] in current.effects][:-1]
+    cheap = replace(job, max_iter=min(job.max_iter, CHEAP_ITER))
+    dropped = False
+    for a in elim:
+        e = a["effect"]
+        t0 = time.perf_counter()
+        say(f"elimination: refitting {current.name} without {e}")
+        reduced = refit_without(cheap, current, e, LS_BASE_NFEV)
+        if reduced is None:
+            continue
+        params = {"base": dict(zip(RGB_NAMES, map(float, current.base))),
+                  "effects": {n: dict(v) for n, v in current.values.items()}}
+        full = Refit(effect=e, effects=current.effects, x=current.x, params=params, theta_fit=current.theta_fit,
+                     sel_pf=current.sel_pf, model=current.model, extra={"ls_sel_E": current.ls_sel_E})
+        margin = margin_for(current.sel_pf - reduced.sel_pf, 2 * len(elim), seed=seed)
+        rgain = residual_gain(reduced, full, 2 * len(elim), seed=seed)
+        ok, strength, crit = JUDGES[e].accept(full, reduced, margin, rgain)
+        candidates.append({**_candidate_row("elimination", reduced, e, full, margin, ok, strength, crit,
+                                            residual_improvement(reduced, full), rgain), "elimination": True})
+        steps.append({"round": "elimination", "model": reduced.name, "theta_heldout": float(reduced.sel_pf.mean()),
+                      "residual_heldout": float(np.mean(reduced.ls_sel_E)), "theta_train": reduced.theta_fit,
+                      "tried": [e], "chosen": None if ok else f"-{e}", "time_s": time.perf_counter() - t0})
+        if ok:
+            say(f"elimination: {e} kept (held-out {'residual' if crit == 'residual' else 'θ'} beyond its margin "
+                f"without it)")
+            continue
+        say(f"elimination: {e} dropped: the model without it, refitted, is as good on the held-out frames "
+            f"(θ {reduced.sel_pf.mean():.4f} vs {current.sel_pf.mean():.4f})")
+        accepted.remove(a)
+        current, dropped = reduced, True
+        fits[current.name] = {"x": current.x, "held_pf": np.asarray(current.sel_pf), "model": current.model,
+                              "model_effects": list(current.effects), "held_E": np.asarray(current.ls_sel_E)}
+    return current, dropped
 
 
 def diagnose_frames(frames: list, fog: str = "exp2", seed: int = 0, max_effects: int = 4, max_iter: int = 30,
@@ -296,8 +340,8 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
     from ..sim.params import ParamSpace
     from .backward import linear_start
     from .judges import JUDGES, Current, Job, margin_for
-    from .judges.base import (Refit, current_ls, gain_words, least_squares_model, refit_without,
-                              residual_gain, residual_improvement, with_effect)
+    from .judges.base import (current_ls, gain_words, least_squares_model, residual_gain, residual_improvement,
+                              with_effect)
     from .residuals import added_surface
     from .screening import screen_proxies
     from .signatures import SignatureContext, run_signatures
@@ -366,8 +410,8 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
     while True:
         while pool and len(accepted) < max_effects:
             rnd += 1
-            # later rounds: the remaining effects with the best evidence of their latest refit, whatever its sign (an
-            # effect can hide behind a stronger one until that one is modelled: β_B ≠ β_D behind strong lamps)
+            # later rounds: the remaining effects with the best evidence of their latest refit, whatever its sign
+            # (an effect can hide behind a stronger one until that one is modelled: β_B ≠ β_D behind strong lamps)
             cands = pool if rnd == 1 else sorted(pool, key=lambda e: -latest.get(e, -np.inf))[:later_candidates]
             if not cands:
                 break
@@ -425,8 +469,8 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
                 # with the base fit's least-squares budget (a candidate's fit must not win by a longer polish alone)
                 current = current_ls(job, with_effect(current, r), max_nfev=LS_BASE_NFEV)
             how = "residual" if crit == "residual" else "θ"
-            say(f"round {rnd}: accepted {e} by held-out {how} (held-out θ {before:.4f} -> {current.sel_pf.mean():.4f}, "
-                f"residual {np.mean(before_E):.3g} -> {np.mean(current.ls_sel_E):.3g} grey levels²)")
+            say(f"round {rnd}: accepted {e} by held-out {how} (held-out θ {before:.4f} -> "
+                f"{current.sel_pf.mean():.4f}, residual {np.mean(before_E):.3g} -> {np.mean(current.ls_sel_E):.3g} grey levels²)")
             accepted.append({"effect": e, "refit": r, "strength": strength, "margin": margin, "before": before,
                              "after": float(current.sel_pf.mean()), "criterion": crit,
                              "residual_before": float(np.mean(before_E)),
@@ -436,48 +480,10 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
             pool.remove(e)
 
         # ---------------------------------------------------------------- backward elimination on held-out frames
-        # An effect accepted before a later one may be explained by it (the footprint of lamps accepted as
-        # vignetting, then the lamps): each earlier one must still beat its margin against the model without it,
-        # refitted, by the rule that accepted it (θ, else the residual).
-        elim = [a for a in accepted if a["effect"] in current.effects][:-1]
         dropped = False
-        if elim and tuple(current.effects) != checked:
-            checked = tuple(current.effects)
+        if len(current.effects) > 1 and tuple(current.effects) != checked:
             t_el = time.perf_counter()
-            cheap = replace(job, max_iter=min(job.max_iter, CHEAP_ITER))
-            m = 2 * len(elim)
-            for a in elim:
-                e = a["effect"]
-                t0 = time.perf_counter()
-                say(f"elimination: refitting {current.name} without {e}")
-                reduced = refit_without(cheap, current, e, LS_BASE_NFEV)
-                if reduced is None:
-                    continue
-                params = {"base": dict(zip(RGB_NAMES, map(float, current.base))),
-                          "effects": {n: dict(v) for n, v in current.values.items()}}
-                full = Refit(effect=e, effects=current.effects, x=current.x, params=params,
-                             theta_fit=current.theta_fit, sel_pf=current.sel_pf, model=current.model,
-                             extra={"ls_sel_E": current.ls_sel_E})
-                margin = margin_for(current.sel_pf - reduced.sel_pf, m, seed=seed)
-                rgain = residual_gain(reduced, full, m, seed=seed)
-                ok, strength, crit = JUDGES[e].accept(full, reduced, margin, rgain)
-                candidates.append({**_candidate_row(rnd + 1, reduced, e, full, margin, ok, strength, crit,
-                                                    residual_improvement(reduced, full), rgain), "round": "elimination",
-                                   "elimination": True})
-                steps.append({"round": "elimination", "model": reduced.name,
-                              "theta_heldout": float(reduced.sel_pf.mean()),
-                              "residual_heldout": float(np.mean(reduced.ls_sel_E)), "theta_train": reduced.theta_fit,
-                              "tried": [e], "chosen": None if ok else f"-{e}", "time_s": time.perf_counter() - t0})
-                if ok:
-                    how = "residual" if crit == "residual" else "θ"
-                    say(f"elimination: {e} kept (held-out {how} beyond its margin without it)")
-                    continue
-                say(f"elimination: {e} dropped: the model without it, refitted, is as good on the held-out frames "
-                    f"(θ {reduced.sel_pf.mean():.4f} vs {current.sel_pf.mean():.4f})")
-                accepted.remove(a)
-                current, dropped = reduced, True
-                fits[current.name] = {"x": current.x, "held_pf": np.asarray(current.sel_pf), "model": current.model,
-                                      "model_effects": list(current.effects), "held_E": np.asarray(current.ls_sel_E)}
+            current, dropped = _eliminate(job, current, accepted, seed, say, candidates, steps, fits)
             checked = tuple(current.effects)        # (judged: a later elimination only after a new effect)
             timing["elimination_s"] = timing.get("elimination_s", 0.0) + time.perf_counter() - t_el
         # a dropped effect frees a place: the forward selection goes on from the smaller model
