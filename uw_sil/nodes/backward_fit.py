@@ -206,6 +206,7 @@ class BackwardFitNode(Node):
         self.pub_diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self._run_cancel = threading.Event()   # the running diagnosis' own: set by ~/start for a new one
         self._stop_asked = None                # monotonic time a stop of the running diagnosis was asked
+        self._stop_said = False                # the shutdown's stop of the running diagnosis was logged
         self._sent_effects = False             # whether this node has set sim_node's effects
         camera_file = self.get_parameter("camera_info_file").value
         self.camera = camera_from_file(camera_file) if camera_file else None
@@ -525,6 +526,7 @@ class BackwardFitNode(Node):
                                      "diagnose_max_effects", "diagnose_effects")}
         options["t_collected"], options["t_last_input"] = t_collected, self._last_input or t_collected
         self._run_cancel = cancel = threading.Event()
+        self._stop_asked, self._stop_said = None, False     # (a stop asked of the previous diagnosis is not this one's)
         self.fit_thread = threading.Thread(target=self._diagnose, args=(frames, options, cancel), daemon=True,
                                            name="diagnosis")
         self.fit_thread.start()
@@ -598,10 +600,13 @@ class BackwardFitNode(Node):
 
     def _report_stopped(self, options: dict):
         """The diagnosis thread ended on a stop request (~/start, Ctrl-C): say so, on ~/status while the node runs."""
+        shutdown = self._stopping.is_set() or not self.context.ok()
+        if shutdown:    # Ctrl-C shuts the context down first: this thread may see it before destroy_node runs
+            self._say_stopping()
         asked = self._stop_asked
         after = f"{time.monotonic() - asked:.1f} s after it was asked, " if asked is not None else ""
         ran = time.monotonic() - options["t_collected"]
-        if self._stopping.is_set() or not self.context.ok():
+        if shutdown:
             text = f"stopped: the diagnosis, by the node's shutdown, {after}after {ran:.0f} s; nothing written or sent"
         else:
             text = (f"stopped: the diagnosis, by ~/start, {after}after {ran:.0f} s; nothing written or sent; "
@@ -610,6 +615,17 @@ class BackwardFitNode(Node):
             self._status(text)
         except Exception:   # the node's handles are gone (the shutdown went on without this thread)
             pass
+
+    def _say_stopping(self):
+        """Log, once per diagnosis, that the shutdown stops it: from destroy_node, or from the diagnosis thread
+        when it saw the shut-down context first (Ctrl-C), whichever comes first."""
+        with self._lock:
+            if self._stop_said:
+                return
+            self._stop_said = True
+            if self._stop_asked is None:
+                self._stop_asked = time.monotonic()
+        self._log().info("stopping the running diagnosis: nothing will be written or sent")
 
     def _publish_statuses(self, statuses: list):
         levels = {"OK": DiagnosticStatus.OK, "WARN": DiagnosticStatus.WARN, "ERROR": DiagnosticStatus.ERROR}
@@ -631,8 +647,7 @@ class BackwardFitNode(Node):
         stopping, thread = getattr(self, "_stopping", None), getattr(self, "fit_thread", None)
         alive = thread is not None and thread.is_alive() and thread is not threading.current_thread()
         if alive and self._diagnosing and not self._run_cancel.is_set():
-            self._stop_asked = time.monotonic()
-            self._log().info("stopping the running diagnosis: nothing will be written or sent")
+            self._say_stopping()
         if stopping is not None:
             stopping.set()
         if alive:
