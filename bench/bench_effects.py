@@ -1,12 +1,16 @@
 """Effects of the extended underwater model: subtlety of the presets (1 - FSIMc) and evaluation time.
 
-    python bench/bench_effects.py [--size 640x480] [--fsim] [--time] [--effects a,b]
+    python bench/bench_effects.py [--size 640x480] [--fsim] [--time] [--jacobian] [--effects a,b]
 
 --fsim: for each effect and severity, 1 - FSIMc between frames with and without it, on three frames of an
 approach (4.0, 2.5, 1.4 m, with yaw/pitch), "clean" (float frames, no camera noise) and "trial" (both
 frames with the synthetic trial's sensor noise, the same realization, 8-bit), plus the mean absolute
 change in grey levels. --time: per-frame degrade (incl. per-render preparation) and per-candidate time of
 the prepared evaluator (N = 20, steady state) for each effect alone (strong), at the given size.
+--jacobian: time per column of a forward-difference Jacobian (one batch of the 7 base + the effect's parameters,
+each moved by one step, as the diagnosis' least-squares fits evaluate it) for each effect alone (strong), with
+the effects' per-render caches and without them (``cache_entries = 0``) in the same run; last line: the ratio
+for the vehicle lamps.
 """
 from __future__ import annotations
 
@@ -86,11 +90,45 @@ def table_time(renders, cam, names, n=20, repeat=3):
           " varies them, each candidate costs about one degrade)")
 
 
+def table_jacobian(renders, cam, names, repeat=3):
+    T, rr = renders[1]
+    print(f"{'effects (strong)':25s} {'columns':>7s} {'no cache ms/col':>16s} {'cached ms/col':>14s} {'ratio':>6s}")
+    ratios = {}
+    for name in names:
+        e = EFFECTS[name]
+        if not hasattr(type(e), "cache_entries"):
+            continue
+        m = UnderwaterModel(DEFAULT_TRUTH, {name: "strong"})
+        x = np.concatenate([DEFAULT_TRUTH.as_vector(), m.effect_vector()])
+        h = 2e-3 * np.maximum(1.0, np.abs(x))
+        X = x[None] + np.diag(h)
+        times = {}
+        for entries in (0, type(e).cache_entries):
+            e.cache_entries = entries
+            try:
+                best = np.inf
+                for _ in range(repeat):
+                    pm = m.prepare(rr, cam, pose=T)            # a fresh render state: empty caches
+                    t = time.perf_counter()
+                    pm(x[None, :7], x[None, 7:])                # f(x), evaluated just before the Jacobian
+                    pm(X[:, :7], X[:, 7:])
+                    best = min(best, time.perf_counter() - t)
+                times[entries] = best / len(X)
+            finally:
+                del e.cache_entries                             # back to the class's value
+        ratios[name] = times[0] / times[type(e).cache_entries]
+        print(f"{name:25s} {len(X):7d} {times[0] * 1e3:16.2f} {times[type(e).cache_entries] * 1e3:14.2f} "
+              f"{ratios[name]:6.2f}", flush=True)
+    if "artificial_light" in ratios:
+        print(f"jacobian: artificial_light no-cache/cached = {ratios['artificial_light']:.2f}x per column")
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--size", default="640x480")
     ap.add_argument("--fsim", action="store_true")
     ap.add_argument("--time", action="store_true")
+    ap.add_argument("--jacobian", action="store_true")
     ap.add_argument("--effects", default=",".join(EFFECTS))
     args = ap.parse_args()
     w, h = (int(v) for v in args.size.split("x"))
@@ -98,10 +136,12 @@ def main():
     with Renderer(camera=CameraModel.from_fov(w, h)) as r:
         renders = [(T, r.render(T)) for T in POSES]
         print(f"# {w}x{h}, truth {DEFAULT_TRUTH.as_dict()}")
-        if args.fsim or not args.time:
+        if args.fsim or not (args.time or args.jacobian):
             table_fsim(renders, r.camera, names)
         if args.time:
             table_time(renders, r.camera, names)
+        if args.jacobian:
+            table_jacobian(renders, r.camera, names)
 
 
 if __name__ == "__main__":

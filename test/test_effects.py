@@ -171,6 +171,30 @@ def test_artificial_light_veil_on_lamp_side(frames, renderer):
     assert right > 1.2 * left                                             # skewed towards the lamp (+x)
 
 
+def test_artificial_light_cache_returns_what_it_computes(frames, renderer):
+    """The lamp light's shape is kept per render for the parameter sets that only scale it (power, fill, veil,
+    the base model's b and fog): a forward-difference batch, then the same sets in reverse order (all from the
+    cache), equal what the evaluator computes without a cache, and the cache stays bounded."""
+    T, rr = frames["mid"]
+    lamp = EFFECTS["artificial_light"]
+    m = UnderwaterModel(P, {"artificial_light": "strong"})
+    x = np.concatenate([P.as_vector(), m.effect_vector()])
+    X = x[None] + np.diag(2e-3 * np.maximum(1.0, np.abs(x)))
+    X = np.concatenate([x[None], X, X[::-1]])
+    pm = m.prepare(rr, renderer.camera, pose=T)
+    cached = pm(X[:, :7], X[:, 7:])
+    st = pm._base_prep.state["artificial_light"]
+    assert 0 < len(st["_E"]) <= lamp.cache_entries and 0 < len(st["_V"]) <= lamp.cache_entries
+    lamp.cache_entries = 0
+    try:
+        plain = m.prepare(rr, renderer.camera, pose=T)(X[:, :7], X[:, 7:])
+    finally:
+        del lamp.cache_entries
+    assert np.array_equal(cached, plain)
+    assert np.array_equal(cached[1:len(x) + 1], cached[len(x) + 1:][::-1])
+    assert not np.array_equal(cached[0], cached[1 + len(x) - 1])        # the veil column moved the image
+
+
 def _hf_energy(img, mask):
     import cv2
     lap = cv2.Laplacian(img.mean(-1).astype(np.float32), cv2.CV_32F)

@@ -65,6 +65,8 @@ class LampRig:
         self.shape = np.float32(values["shape"])
         self.power = float(values["power"])
         self.fill = float(values["fill"])
+        # what the shape of the light depends on (power, fill and veil only scale it)
+        self.key = (float(ox), float(oy), float(toe), float(values["half_angle"]), float(values["shape"]), float(wb))
 
     def beam(self, cos_theta):
         theta = np.arccos(np.clip(cos_theta, -1.0, 1.0))
@@ -117,7 +119,7 @@ class ArtificialLight(Effect):
         hit = geom.hit
         X = geom.X
         n = geom.normals
-        st = {"hit": hit}
+        st = {"hit": hit, "nohit": ~hit[None]}
         # surface terms as planes: |X - L|^2 = |X|^2 - 2 X.L + |L|^2, n.(X - L) = n.X - n.L
         st["X"] = [np.ascontiguousarray(X[..., k]) for k in range(3)]
         st["n"] = [np.ascontiguousarray(n[..., k]) for k in range(3)]
@@ -154,8 +156,35 @@ class ArtificialLight(Effect):
 
     # ------------------------------------------------------------------ per parameter set
 
+    # A fit evaluates many parameter sets on one render; power, fill and veil only scale the light, so the
+    # forward-difference Jacobian of a least-squares fit (one column per parameter) needs the light's shape for
+    # only the columns that move the lamps or the attenuation: the last shapes are kept per render (LRU).
+    cache_entries = 8
+    CACHE_BYTES = 64 << 20
+
+    def _cached(self, st, kind: str, key, compute) -> np.ndarray:
+        cache = st.setdefault(kind, {})
+        hit = cache.pop(key, None)
+        if hit is None:
+            hit = compute()
+            hit.setflags(write=False)
+            room = min(self.cache_entries, self.CACHE_BYTES // max(hit.nbytes, 1))
+            while cache and len(cache) >= room:
+                cache.pop(next(iter(cache)))         # least recently used first
+        if self.cache_entries > 0:
+            cache[key] = hit
+        return hit
+
     def illumination(self, st, rig: LampRig, a) -> np.ndarray:
         """(3, H, W) relative illumination ``L`` (1 on pixels without a hit)."""
+        key = (rig.key, *map(float, a))
+        E = self._cached(st, "_E", key, lambda: self._irradiance(st, rig, a))
+        Lc = np.float32(rig.fill) + np.float32((1 - rig.fill) * rig.power) * E
+        np.copyto(Lc, np.float32(1.0), where=st["nohit"])
+        return Lc
+
+    def _irradiance(self, st, rig: LampRig, a) -> np.ndarray:
+        """(3, H, W) ``E_c`` of the module's formula (power and fill not applied)."""
         X, n = st["X"], st["n"]
         h, w = st["X2"].shape
         E = np.zeros((3, h, w), np.float32)
@@ -170,12 +199,15 @@ class ArtificialLight(Effect):
             g = np.float32(wl * R0 * R0) * rig.beam(cos_t) * lamb / (R * R)
             for c in range(3):
                 E[c] += g * np.exp(-np.float32(a[c]) * (R - np.float32(R0)))
-        Lc = np.float32(rig.fill) + np.float32((1 - rig.fill) * rig.power) * E
-        Lc[:, ~st["hit"]] = 1.0
-        return Lc
+        return E
 
     def veil_field(self, st, rig: LampRig, a, strength: float) -> np.ndarray:
-        """(3, H, W) lamp-lit backscatter."""
+        """(3, H, W) lamp-lit backscatter (linear in ``strength``)."""
+        V1 = self._cached(st, "_V", (rig.key, *map(float, a)), lambda: self._veil_unit(st, rig, a))
+        return np.float32(strength) * V1
+
+    def _veil_unit(self, st, rig: LampRig, a) -> np.ndarray:
+        """(3, H, W) the veil of unit strength."""
         d, s = st["d"], st["s"][:, None, None]
         gh, gw = st["grid"]
         f = np.zeros((3, N_S, gh, gw), np.float32)
@@ -195,7 +227,7 @@ class ArtificialLight(Effect):
                 f[c] += g * np.exp(-np.float32(a[c]) * (R + s))
         # cumulative trapezoid along the distances, then into an atlas of distance layers side by side
         # (each padded by one duplicated column, one padded row) for two bilinear lookups per pixel
-        inc = (f[:, 1:] + f[:, :-1]) * (np.float32(0.5 * strength) * st["ds"])[None, :, None, None]
+        inc = (f[:, 1:] + f[:, :-1]) * (np.float32(0.5) * st["ds"])[None, :, None, None]
         inc = np.ascontiguousarray(inc.transpose(1, 2, 3, 0))
         C = np.zeros((N_S, gh, gw, 3), np.float32)
         for k in range(1, N_S):                                     # (np.cumsum is slower here)
