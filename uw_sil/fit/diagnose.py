@@ -271,14 +271,18 @@ def _candidate_row(rnd, current, e: str, r, margin: float, ok: bool, strength: f
     return row
 
 
-def _eliminate(job, current, accepted: list, seed: int, say, candidates: list, steps: list, fits: dict) -> tuple:
+def _eliminate(job, current, accepted: list, seed: int, say, candidates: list, steps: list, fits: dict,
+               earlier: dict) -> tuple:
     """Backward elimination on held-out frames: an effect accepted before a later one may be explained by it
     (the footprint of lamps accepted as vignetting, then the lamps). Each earlier one must still beat its
     margin against the model without it, refitted (:func:`uw_sil.fit.judges.base.refit_without`), by the rule
-    that accepted it (θ, else the residual), or it is dropped (removed from ``accepted``). Appends to
-    ``candidates``, ``steps`` and ``fits``; returns ``(current, dropped)``."""
+    that accepted it (θ, else the residual), or it is dropped (removed from ``accepted``). The model without
+    it is the better, on the fit frames, of that refit and an earlier fit of the same model in the forward
+    selection (``earlier``: effect set -> (model it was added to, refit); a model containing another is not
+    judged against a worse fit of that one than the selection already had). Appends to ``candidates``,
+    ``steps`` and ``fits``; returns ``(current, dropped)``."""
     from .judges import JUDGES, margin_for
-    from .judges.base import Refit, refit_without, residual_gain, residual_improvement
+    from .judges.base import Refit, current_ls, refit_without, residual_gain, residual_improvement, with_effect
 
     elim = [a for a in accepted if a["effect"] in current.effects][:-1]
     cheap = replace(job, max_iter=min(job.max_iter, CHEAP_ITER))
@@ -290,6 +294,11 @@ def _eliminate(job, current, accepted: list, seed: int, say, candidates: list, s
         reduced = refit_without(cheap, current, e, LS_BASE_NFEV)
         if reduced is None:
             continue
+        known = earlier.get(frozenset(reduced.effects))
+        if known is not None and known[1].theta_fit > reduced.theta_fit:
+            say(f"elimination: the forward selection's fit of {reduced.name} is better on the fit frames "
+                f"(θ {known[1].theta_fit:.4f} vs {reduced.theta_fit:.4f}): that one is compared")
+            reduced = current_ls(job, with_effect(*known), max_nfev=LS_BASE_NFEV)
         params = {"base": dict(zip(RGB_NAMES, map(float, current.base))),
                   "effects": {n: dict(v) for n, v in current.values.items()}}
         full = Refit(effect=e, effects=current.effects, x=current.x, params=params, theta_fit=current.theta_fit,
@@ -313,6 +322,14 @@ def _eliminate(job, current, accepted: list, seed: int, say, candidates: list, s
         fits[current.name] = {"x": current.x, "held_pf": np.asarray(current.sel_pf), "model": current.model,
                               "model_effects": list(current.effects), "held_E": np.asarray(current.ls_sel_E)}
     return current, dropped
+
+
+def _keep_better(earlier: dict, current, r):
+    """Remember the refit ``r`` of ``current`` + its effect under its effect set, if it is the best on the fit
+    frames so far (what backward elimination compares a model without an effect with)."""
+    key = frozenset(r.effects)
+    if key not in earlier or r.theta_fit > earlier[key][1].theta_fit:
+        earlier[key] = (current, r)
 
 
 def diagnose_frames(frames: list, fog: str = "exp2", seed: int = 0, max_effects: int = 4, max_iter: int = 30,
@@ -402,7 +419,7 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
     order = {e: JUDGES[e].order(job) for e in allowed}
     pool = sorted((e for e in allowed if JUDGES[e].kind == "theta"), key=lambda e: -order[e])
     stat_effects = [e for e in allowed if JUDGES[e].kind == "statistic"]
-    candidates, steps, accepted, latest = [], [], [], {}
+    candidates, steps, accepted, latest, earlier = [], [], [], {}, {}
     fits = {"base": {"x": base_fit.x, "held_pf": base_sel_pf, "model": empty, "model_effects": [],
                      "held_E": base_sel_E}}
     rnd = 0
@@ -421,6 +438,8 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
             for e in cands:
                 say(f"round {rnd}: refitting {current.name} + {e}")
                 results[e] = JUDGES[e].refit(cheap, current)
+                if not JUDGES[e].absorb:
+                    _keep_better(earlier, current, results[e])
             best, rows = None, []
             for e, r in results.items():
                 # two held-out tests per candidate (θ and the residual): both margins corrected for 2 x candidates
@@ -483,7 +502,7 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
         dropped = False
         if len(current.effects) > 1 and tuple(current.effects) != checked:
             t_el = time.perf_counter()
-            current, dropped = _eliminate(job, current, accepted, seed, say, candidates, steps, fits)
+            current, dropped = _eliminate(job, current, accepted, seed, say, candidates, steps, fits, earlier)
             checked = tuple(current.effects)        # (judged: a later elimination only after a new effect)
             timing["elimination_s"] = timing.get("elimination_s", 0.0) + time.perf_counter() - t_el
         # a dropped effect frees a place: the forward selection goes on from the smaller model
