@@ -47,7 +47,7 @@ def test_registry_names_and_stages():
         assert e.name == name and get_effect(name) is e
         assert e.stage in STAGES
         assert set(e.severities) == {"mild", "strong"}
-        assert 1 <= len(e.params) <= 9
+        assert 1 <= len(e.params) <= 12
         assert isinstance(e.invertible, bool) and isinstance(e.random_per_frame, bool)
         for level in ("mild", "strong"):
             e.check(e.severity(level))                       # presets lie inside the bounds
@@ -130,6 +130,11 @@ def test_vignetting_radial_and_frame_invariant(frames, renderer):
     V = ratios[0][..., 1]
     np.testing.assert_allclose(V, V[::-1, ::-1], rtol=1e-4)               # symmetric about the centre
     assert V[60, 80] > 0.999 and abs(V[0, 0] - (1 - 0.5 + 0.1)) < 0.02    # 1 at the centre, 1+k1+k2 at corners
+    # a lens only loses light away from its centre: coefficients that would brighten the corners are capped at 1
+    bright = degrade({"vignetting": {"k1": 0.45, "k2": -0.2}}, frames["near"], cam)
+    np.testing.assert_array_equal(bright, degrade({}, frames["near"], cam))
+    mixed = degrade({"vignetting": {"k1": 0.4, "k2": -0.6}}, frames["near"], cam) / degrade({}, frames["near"], cam)
+    assert mixed[..., 1].max() <= 1.0 and mixed[0, 0, 1] < 0.85          # (1 + 0.4 rho^2 - 0.6 rho^4: dark corners)
 
 
 def test_artificial_light_multiplicative_and_falling_with_distance(frames, renderer):
@@ -157,6 +162,28 @@ def test_artificial_light_multiplicative_and_falling_with_distance(frames, rende
         return beam * (d / R) / R ** 2 * np.exp(-np.asarray(P.a[:2]) * R)
     np.testing.assert_allclose(gains["far"] / gains["near"], on_axis(3.5) / on_axis(1.5), rtol=0.03)
     assert gains["far"][0] < gains["far"][1]                             # red suffers more on the lamp path
+
+
+def test_artificial_light_colour_tints_the_lamp_light_and_its_veil(frames, renderer):
+    """tint_r / tint_b scale the lamps' light per channel (green is the reference): on the lit panel (I - B) and in
+    the veil of open water; with lamps only (fill 0) the panel's red and blue scale by exactly the tint."""
+    cam = renderer.camera
+    T, rr = frames["mid"]
+    lamp = {"offset_x": 0.3, "balance": 0.5, "half_angle": 1.2, "fill": 0.0, "veil": 0.05, "power": 0.3}
+    white = UnderwaterModel(P, {"artificial_light": lamp}).degrade(rr, cam)
+    warm = UnderwaterModel(P, {"artificial_light": {**lamp, "tint_r": 1.3, "tint_b": 0.7}}).degrade(rr, cam)
+    hit = np.isfinite(rr.range)
+    tr = np.exp(-np.asarray(P.a)[None, None] * rr.range[..., None]) * np.exp(-(P.rho_f * rr.depth) ** 2)[..., None]
+    Bk = np.asarray(P.b) * (1 - tr)
+    veil0 = white - UnderwaterModel(P, {"artificial_light": {**lamp, "veil": 0.0}}).degrade(rr, cam)
+    veil1 = warm - UnderwaterModel(P, {"artificial_light": {**lamp, "veil": 0.0, "tint_r": 1.3,
+                                                             "tint_b": 0.7}}).degrade(rr, cam)
+    lit = hit & ((white - Bk - veil0).min(-1) > 1e-3)
+    assert lit.sum() > 100
+    ratio = (warm - Bk - veil1)[lit].sum(0) / (white - Bk - veil0)[lit].sum(0)
+    np.testing.assert_allclose(ratio, [1.3, 1.0, 0.7], rtol=1e-3)
+    water = ~hit
+    np.testing.assert_allclose(veil1[water].sum(0) / veil0[water].sum(0), [1.3, 1.0, 0.7], rtol=1e-3)
 
 
 def test_artificial_light_veil_on_lamp_side(frames, renderer):

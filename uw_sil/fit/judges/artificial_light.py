@@ -12,7 +12,10 @@ class ArtificialLightJudge(Judge):
     effect = "artificial_light"
     # power is free: how bright the lamps are against the render's light level is the recording's, not ours
     # (fixed at 1, a foreign rig normalized at 2.5 m instead of 2 m could not be fitted)
-    free = ("offset_x", "offset_y", "toe_in", "half_angle", "shape", "balance", "fill", "power", "veil")
+    # the lamps' colour (tint) too: a white LED is not the white light the renders assume, and a colour the lamp
+    # model cannot take is left to a per-channel gain of the camera response, named beside the lamps
+    free = ("offset_x", "offset_y", "toe_in", "half_angle", "shape", "balance", "fill", "power", "veil", "tint_r",
+            "tint_b")
     res = "low"
     residual_evidence = True
     sigma = 0.12
@@ -50,7 +53,16 @@ class ArtificialLightJudge(Judge):
             lamp = f"a lamp about {off:.2f} m {side} of the camera"
         return (f"the recording is lit by vehicle lamps the simulation lacks: brightness on the panel falls "
                 f"~1/r² from {lamp} ({100 * (1 - e.get('fill', 1)):.0f} % of the light from the lamps, beam half "
-                f"width {math.degrees(e.get('half_angle', 0)):.0f}°); {gain}")
+                f"width {math.degrees(e.get('half_angle', 0)):.0f}°{self._colour(e)}); {gain}")
+
+    @staticmethod
+    def _colour(e) -> str:
+        r, b = e.get("tint_r", 1.0), e.get("tint_b", 1.0)
+        if max(abs(r - 1), abs(b - 1)) < 0.05:
+            return ""
+        warm = "warm" if r > b else "cool"
+        return f", {warm} light: red {r:.2f} and blue {b:.2f} of its green"
+
 
     def ranges(self, e):
         out = []

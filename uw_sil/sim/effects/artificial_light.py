@@ -14,15 +14,17 @@ water; the camera path is the base model's). ``E`` is relative to a surface faci
 at ``R0 = 2 m``, so at that distance the base model's brightness and colour are kept and the effect adds
 the variation: the radiance becomes ``i' = i * L_c`` with
 
-    L_c = fill + (1 - fill) * power * E_c
+    L_c = fill + (1 - fill) * power * t_c * E_c
 
+(``t_c``: the lamps' colour, ``tint_r`` and ``tint_b`` against green: a white LED's spectrum, warm to cool,
+seen through the camera's channels is not the white light the renders assume; 1 = white.)
 (``fill``: share of uniform light the base model already describes; 1 = no effect). The renderer's
 headlight shading stays in ``i``: for surfaces tilted away from the optical axis the orientation is
 counted in both (documented approximation; on a panel facing the camera the renderer's term is 1).
 
 Lamp-lit backscatter (single scattering, the veil in the water, brightest where beams cross the view)::
 
-    V_c(p) = veil * int_0^{R_c} sum_l w_l P(theta_l) HG(psi) / HG(pi) / R_l(s)^2 exp(-a_c (R_l(s) + s)) ds
+    V_c(p) = veil * t_c * int_0^{R_c} sum_l w_l P(theta_l) HG(psi) / HG(pi) / R_l(s)^2 exp(-a_c (R_l(s) + s)) ds
 
 along the viewing ray ``s d`` of pixel ``p`` up to the surface (or 12 m in open water), with
 Henyey-Greenstein phase ``g = 0.9`` normalized to its backscatter value. The integral is evaluated on a
@@ -65,7 +67,9 @@ class LampRig:
         self.shape = np.float32(values["shape"])
         self.power = float(values["power"])
         self.fill = float(values["fill"])
-        # what the shape of the light depends on (power, fill and veil only scale it)
+        # the lamps' colour against the light the renders assume (white): per-channel gain, green 1
+        self.tint = np.array([values["tint_r"], 1.0, values["tint_b"]], np.float32)
+        # what the shape of the light depends on (power, fill, veil and tint only scale it)
         self.key = (float(ox), float(oy), float(toe), float(values["half_angle"]), float(values["shape"]), float(wb))
 
     def beam(self, cos_theta):
@@ -82,7 +86,7 @@ class LampRig:
             R = np.maximum(np.linalg.norm(v, axis=1), 0.05)
             g = wl * self.beam((v @ self.axis[l]) / R) * (R0 / R) ** 2
             E += g[:, None] * np.exp(-np.outer(R - R0, a)).astype(np.float32)
-        return np.minimum(self.fill + (1 - self.fill) * self.power * E, 50.0)
+        return np.minimum(self.fill + (1 - self.fill) * self.power * E * self.tint[None], 50.0)
 
 
 class ArtificialLight(Effect):
@@ -101,6 +105,8 @@ class ArtificialLight(Effect):
         EffectParam("power", 1.0, 0.1, 5.0, "", "lamp irradiance relative to the base model's light at 2 m"),
         EffectParam("fill", 1.0, 0.0, 1.0, "", "share of uniform light (1: no lamp effect)"),
         EffectParam("veil", 0.0, 0.0, 0.5, "1/m", "lamp-lit backscatter strength (scattering x lamp radiance)"),
+        EffectParam("tint_r", 1.0, 0.5, 2.0, "", "lamp light's red against its green (LED colour; 1: white)"),
+        EffectParam("tint_b", 1.0, 0.5, 2.0, "", "lamp light's blue against its green (LED colour; 1: white)"),
     )
     severities = {
         "mild": {"offset_x": 0.35, "offset_y": -0.15, "half_angle": 0.8, "balance": 0.5, "fill": 0.82,
@@ -156,7 +162,7 @@ class ArtificialLight(Effect):
 
     # ------------------------------------------------------------------ per parameter set
 
-    # A fit evaluates many parameter sets on one render; power, fill and veil only scale the light, so the
+    # A fit evaluates many parameter sets on one render; power, fill, veil and tint only scale the light, so the
     # forward-difference Jacobian of a least-squares fit (one column per parameter) needs the light's shape for
     # only the columns that move the lamps or the attenuation: the last shapes are kept per render (LRU).
     cache_entries = 8
@@ -179,7 +185,7 @@ class ArtificialLight(Effect):
         """(3, H, W) relative illumination ``L`` (1 on pixels without a hit)."""
         key = (rig.key, *map(float, a))
         E = self._cached(st, "_E", key, lambda: self._irradiance(st, rig, a))
-        Lc = np.float32(rig.fill) + np.float32((1 - rig.fill) * rig.power) * E
+        Lc = np.float32(rig.fill) + (np.float32((1 - rig.fill) * rig.power) * rig.tint)[:, None, None] * E
         np.copyto(Lc, np.float32(1.0), where=st["nohit"])
         return Lc
 
@@ -204,7 +210,7 @@ class ArtificialLight(Effect):
     def veil_field(self, st, rig: LampRig, a, strength: float) -> np.ndarray:
         """(3, H, W) lamp-lit backscatter (linear in ``strength``)."""
         V1 = self._cached(st, "_V", (rig.key, *map(float, a)), lambda: self._veil_unit(st, rig, a))
-        return np.float32(strength) * V1
+        return (np.float32(strength) * rig.tint)[:, None, None] * V1
 
     def _veil_unit(self, st, rig: LampRig, a) -> np.ndarray:
         """(3, H, W) the veil of unit strength."""

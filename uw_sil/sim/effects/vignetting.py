@@ -5,7 +5,9 @@
 with ``rho`` the distance of a pixel from the vignetting centre in units of the image half-diagonal (the
 corners of a centred optic sit at rho = 1, where the relative illumination is ``1 + k1 + k2``; deep-sea
 camera housings: 0.3-0.8). The centre is the principal point moved by ``(cx, cy)`` half-diagonals.
-``V`` is floored at 0.02 so the inverse (``I / V``) stays finite.
+``V`` is floored at 0.02 so the inverse (``I / V``) stays finite, and capped at 1: a lens or port only loses
+light away from its centre (cos^4 law, the port's aperture), it never gains it; a polynomial that would brighten
+the corners (as the beams of several spot lamps can) is no vignetting, and is not one here.
 """
 from __future__ import annotations
 
@@ -47,7 +49,7 @@ class Vignetting(Effect):
         dv = v - np.float32(values["cy"])
         rho2 = du * du + dv * dv
         V = 1 + rho2 * (np.float32(values["k1"]) + np.float32(values["k2"]) * rho2)
-        return np.maximum(V, np.float32(V_MIN)).astype(np.float32)
+        return np.clip(V, np.float32(V_MIN), np.float32(1.0)).astype(np.float32)
 
     def apply(self, terms, values, rng):
         terms.I *= self.falloff(terms.state[self.name], values)[None]
