@@ -276,6 +276,7 @@ def test_backward_elimination_drops_an_effect_a_later_one_explains(bags, monkeyp
         return real(self, r, current, margin, residual)
 
     monkeypatch.setattr(cls, "accept", planted)
+    monkeypatch.setattr(cls, "plausibility", lambda self, values: [])   # (chosen first even if its fit is stretched)
     doc = diagnose_bag(bags["vignetting"], k=6, effects_allowed=["artificial_light", "vignetting"]).to_json()
     chosen = [s["chosen"] for s in doc["selection"]]
     assert chosen[:2] == ["artificial_light", "vignetting"], doc["selection"]
@@ -286,6 +287,34 @@ def test_backward_elimination_drops_an_effect_a_later_one_explains(bags, monkeyp
     assert [v["effect"] for v in doc["verdict"]] == ["vignetting"]
     assert not [k for k in doc["final"]["params"] if k.startswith("artificial_light.")]
     assert any(k.startswith("vignetting.") for k in doc["final"]["params"])
+
+
+def test_a_plausible_explanation_is_chosen_before_a_stretched_one(bags, monkeypatch):
+    """Among the candidates a round accepts, one whose fitted values sit on their bounds or outside deep-sea
+    ranges (a doubt) ranks after every plausible one, whatever its strength: plant a doubt on vignetting (the true
+    effect of the trial, by far the strongest) and a weak acceptance of the lamps; round 1 must choose the lamps
+    and say why vignetting was passed over."""
+    import uw_sil.fit.judges as jd
+    from uw_sil.fit.diagnose import diagnose_bag
+
+    lamp, vig = type(jd.JUDGES["artificial_light"]), type(jd.JUDGES["vignetting"])
+    real = lamp.accept
+
+    def weak(self, r, current, margin, residual=None):
+        ok, strength, crit = real(self, r, current, margin, residual)
+        return (True, 0.01, "theta") if not current.effects else (ok, strength, crit)
+
+    monkeypatch.setattr(lamp, "accept", weak)
+    monkeypatch.setattr(lamp, "plausibility", lambda self, values: [])       # (its weak fit may sit on a bound)
+    monkeypatch.setattr(vig, "plausibility", lambda self, values: ["planted doubt"])
+    said = []
+    doc = diagnose_bag(bags["vignetting"], k=6, effects_allowed=["artificial_light", "vignetting"], max_effects=1,
+                       progress=said.append).to_json()
+    round1 = {c["effect"]: c for c in doc["candidates"] if c["round"] == 1 and not c.get("full_refit")}
+    assert round1["vignetting"]["accepted"] and round1["vignetting"]["doubts"] == ["planted doubt"]
+    assert round1["vignetting"]["strength"] > round1["artificial_light"]["strength"]
+    assert doc["selection"][0]["chosen"] == "artificial_light", doc["selection"]
+    assert any("vignetting passed over" in m and "planted doubt" in m for m in said), said
 
 
 def test_doubts_lower_confidence():

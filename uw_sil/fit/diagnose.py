@@ -448,11 +448,16 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
                 rgain = residual_gain(current, r, 2 * len(cands), seed=seed)
                 ok, strength, crit = JUDGES[e].accept(r, current, margin, rgain)
                 latest[e] = float(np.mean(r.sel_pf - current.sel_pf)) if not ok else max(strength, 1e-6)
-                rows.append(_candidate_row(rnd, current, e, r, margin, ok, strength, crit, imp, rgain))
-                # θ, the paper's criterion, first: the residual decides only where no candidate raised θ (it
-                # is the likelihood of the dark, noisy frames θ is blind to, not a rival ranking of the others)
-                if ok and (best is None or (crit == "theta", strength) > (best[4] == "theta", best[2])):
-                    best = (e, r, strength, margin, crit)
+                doubts = JUDGES[e].plausibility(r.params["effects"].get(e, {})) if ok else []
+                rows.append({**_candidate_row(rnd, current, e, r, margin, ok, strength, crit, imp, rgain),
+                             "doubts": doubts})
+                # a physically plausible explanation first: a fit with its parameters on their bounds or outside
+                # deep-sea ranges is stretched to mimic something else (β_B/β_D = 6 taking the veil of lamps);
+                # then θ, the paper's criterion: the residual decides only where no candidate raised θ (it is the
+                # likelihood of the dark, noisy frames θ is blind to, not a rival ranking of the others)
+                rank = (not doubts, crit == "theta", strength)
+                if ok and (best is None or rank > best[5]):
+                    best = (e, r, strength, margin, crit, rank)
             candidates += rows
             steps.append({"round": rnd, "model": current.name, "theta_heldout": float(current.sel_pf.mean()),
                           "residual_heldout": float(np.mean(current.ls_sel_E)),
@@ -463,7 +468,12 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
                 say(f"round {rnd}: no effect raised held-out θ or lowered the held-out residual beyond its margin; "
                     f"selection ends")
                 break
-            e, r, strength, margin, crit = best
+            e, r, strength, margin, crit, _ = best
+            passed = [row["effect"] for row in rows if row["accepted"] and row["doubts"] and row["effect"] != e
+                      and row["strength"] > strength]
+            if passed:
+                say(f"round {rnd}: {', '.join(passed)} passed over: fitted out of physical range "
+                    f"({'; '.join(d for row in rows if row['effect'] in passed for d in row['doubts'][:1])})")
             before = float(current.sel_pf.mean())
             before_E = current.ls_sel_E
             judge = JUDGES[e]
