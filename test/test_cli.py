@@ -97,3 +97,13 @@ def test_ctrl_c_during_fit_leaves_no_output(tmp_path):
     assert p.returncode == 130, err
     assert "interrupted" in err
     assert not out_dir.exists() or sorted(os.listdir(out_dir)) == []
+
+
+def test_demo_says_what_was_found_and_what_else_was_named():
+    from uw_sil.cli import found_words
+
+    assert found_words(["artificial_light"], ["artificial_light"]) == "found"
+    assert found_words(["artificial_light"], ["backscatter_coefficient", "artificial_light"]) == \
+        "found (also named, not concealed: backscatter_coefficient)"
+    assert found_words(["artificial_light", "vignetting"], ["vignetting"]) == "NOT found: artificial_light"
+    assert found_words([], ["vignetting"]) == "nothing concealed (also named, not concealed: vignetting)"

@@ -588,13 +588,24 @@ def cmd_demo(args) -> int:
         hidden_truth = sorted(load_truth(hidden).get("effects") or [])
         doc = json.loads((out / "diagnose.json").read_text())
         named = [v["effect"] for v in doc["verdict"]]
-        found = bool(hidden_truth) and set(named[:len(hidden_truth)]) == set(hidden_truth)
         print(f"concealed in the second dive: {', '.join(hidden_truth) or 'nothing'}; diagnosis: "
-              f"{', '.join(named) or 'none'} -> {'found' if found else 'NOT found'}; held-out θ "
+              f"{', '.join(named) or 'none'} -> {found_words(hidden_truth, named)}; held-out θ "
               f"{doc['base']['theta_heldout']:.4f} -> {doc['final']['theta_heldout']:.4f}")
     print(f"demo done in {time.perf_counter() - t0:.0f} s: open {out / 'report' / 'index.html'}"
           + (f" and {out / 'diagnose' / 'index.html'}" if args.diagnose else ""))
     return 0
+
+
+def found_words(concealed: list, named: list) -> str:
+    """What a diagnosis found of the effects a trial concealed: 'found', or 'NOT found: <missed>', and the names
+    it gave that were not concealed."""
+    missed = [e for e in concealed if e not in named]
+    extra = [e for e in named if e not in concealed]
+    if not concealed:
+        head = "nothing concealed"
+    else:
+        head = f"NOT found: {', '.join(missed)}" if missed else "found"
+    return head + (f" (also named, not concealed: {', '.join(extra)})" if extra else "")
 
 
 def cmd_batch(args) -> int:
