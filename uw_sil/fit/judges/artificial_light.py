@@ -63,7 +63,6 @@ class ArtificialLightJudge(Judge):
         warm = "warm" if r > b else "cool"
         return f", {warm} light: red {r:.2f} and blue {b:.2f} of its green"
 
-
     def ranges(self, e):
         out = []
         d = math.hypot(e.get("offset_x", 0), e.get("offset_y", 0))

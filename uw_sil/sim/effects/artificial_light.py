@@ -16,9 +16,9 @@ the variation: the radiance becomes ``i' = i * L_c`` with
 
     L_c = fill + (1 - fill) * power * t_c * E_c
 
-(``t_c``: the lamps' colour, ``tint_r`` and ``tint_b`` against green: a white LED's spectrum, warm to cool,
-seen through the camera's channels is not the white light the renders assume; 1 = white.)
-(``fill``: share of uniform light the base model already describes; 1 = no effect). The renderer's
+(``fill``: share of uniform light the base model already describes; 1 = no effect; ``t_c``: the lamps'
+colour, ``tint_r`` and ``tint_b`` against green, since a white LED's spectrum, warm to cool, seen through the
+camera's channels is not the white light the renders assume; 1 = white). The renderer's
 headlight shading stays in ``i``: for surfaces tilted away from the optical axis the orientation is
 counted in both (documented approximation; on a panel facing the camera the renderer's term is 1).
 
