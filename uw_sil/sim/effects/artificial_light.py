@@ -190,7 +190,7 @@ class ArtificialLight(Effect):
         return Lc
 
     def _irradiance(self, st, rig: LampRig, a) -> np.ndarray:
-        """(3, H, W) ``E_c`` of the module's formula (power and fill not applied)."""
+        """(3, H, W) ``E_c`` of the module's formula (power, fill and tint not applied)."""
         X, n = st["X"], st["n"]
         h, w = st["X2"].shape
         E = np.zeros((3, h, w), np.float32)
