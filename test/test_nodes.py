@@ -499,3 +499,27 @@ def test_play_command_ends_with_the_bag(trial):
     finally:
         play.stop()
     assert time.monotonic() - t0 < 30
+
+
+def test_a_stopped_node_waits_for_rclpys_signal_thread_before_it_is_destroyed():
+    """rclpy shuts the context down in a thread of its own after SIGINT/SIGTERM; destroying publishers
+    meanwhile crashed the enhancer once (SIGSEGV in destroy_publisher). The stop waits until the context
+    is shut down, and gives up after its timeout when it never is."""
+    from uw_sil.nodes import _await_signal_shutdown
+
+    class FakeRclpy:
+        def __init__(self, ok_calls):
+            self.left, self.calls = ok_calls, 0
+
+        def ok(self):
+            self.calls += 1
+            self.left -= 1
+            return self.left >= 0
+
+    shutting = FakeRclpy(3)                 # the signal thread finishes after three checks
+    _await_signal_shutdown(shutting, timeout=30.0)
+    assert shutting.calls == 4
+    never = FakeRclpy(10**9)
+    t0 = time.monotonic()
+    _await_signal_shutdown(never, timeout=0.05)
+    assert never.calls > 1 and time.monotonic() - t0 < 5.0

@@ -231,6 +231,23 @@ def _interrupt(signum, _frame):
     raise KeyboardInterrupt
 
 
+#: How long a stopped node waits for rclpy's signal thread to shut the context down (it takes ~0.1 ms).
+SIGNAL_SHUTDOWN_WAIT = 2.0
+
+
+def _await_signal_shutdown(rclpy, timeout: float = SIGNAL_SHUTDOWN_WAIT):
+    """Wait until rclpy's own SIGINT/SIGTERM handler has shut the context down.
+
+    That handler does not shut down in the signal's thread: it wakes a thread of rclpy's that shuts
+    down every context while our handler raises KeyboardInterrupt in the main thread. Destroying the
+    node's publishers while that thread is inside ``rcl_shutdown`` crashed a node (SIGSEGV in
+    ``destroy_publisher``, once in a CI run). ``rcl_shutdown`` marks the context invalid as its last
+    step, so once ``rclpy.ok()`` is False the node can be destroyed the usual way."""
+    deadline = time.monotonic() + timeout
+    while rclpy.ok() and time.monotonic() < deadline:
+        time.sleep(0.002)
+
+
 def _run_node(make_node, spin, args, name, user_errors) -> int:
     profile = use_fastdds_profile()
     stale = clean_stale_shm_segments()
@@ -266,6 +283,8 @@ def _run_node(make_node, spin, args, name, user_errors) -> int:
             raise
     finally:
         _ignore_signals()
+        if _stop_signals:
+            _await_signal_shutdown(rclpy)
         try:
             if node is not None:
                 node.destroy_node()
