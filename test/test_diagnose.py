@@ -184,6 +184,42 @@ def test_noise_statistics_leave_particles_out():
     assert 1.8 < st["sigma_water"] < 2.5 and st["lag_ratio"] > 0.9
 
 
+def test_snow_is_checked_on_the_pixels_its_particles_leave_alone():
+    """Issue 18, section 3: a particle model is judged on statistics, and θ on the pixels it does not claim must
+    not fall. Specks alone leave those pixels as they were (θ holds); a 'particle' fit that lays a veil over
+    the whole frame claims every pixel and is not held to be particles."""
+    from types import SimpleNamespace
+
+    from uw_sil.fit.judges.marine_snow import unclaimed_theta
+    from uw_sil.fit.residuals import LABEL_PANEL
+
+    rng = np.random.default_rng(4)
+    h, w = 96, 128
+    yy, xx = np.mgrid[:h, :w]
+    labels = np.where((abs(yy - h / 2) < 30) & (abs(xx - w / 2) < 40), LABEL_PANEL, 0).astype(np.uint8)
+    clean = np.stack([40 + 0.5 * xx, 90 + 0.3 * yy, 120 + 20 * (labels > 0)], -1).astype(np.float32)
+    specks = np.zeros((h, w), np.float32)
+    specks[rng.integers(0, h, 60), rng.integers(0, w, 60)] = 80.0
+    frames = [SimpleNamespace(image=clean + specks[..., None], labels=labels, water=labels == 0, factor=1,
+                              shape=(h, w)) for _ in range(3)]
+
+    class Model:
+        def __init__(self, extra):
+            self.extra = extra
+
+        def simulate(self, k, X):
+            return np.stack([clean + x[0] * self.extra for x in X]) / 255.0
+
+    base, cand = np.array([0.0]), np.array([1.0])
+    elsewhere = np.zeros((h, w), np.float32)          # particles are at random places: not the recording's
+    elsewhere[rng.integers(0, h, 60), rng.integers(0, w, 60)] = 80.0
+    held = unclaimed_theta(frames, Model(elsewhere[..., None]), base, cand)
+    assert held["held"] and held["frames_checked"] == 3 and held["unclaimed_share"] > 0.8, held
+    assert held["fall"] < held["margin"], held
+    veil = unclaimed_theta(frames, Model(np.full((h, w, 1), 12.0, np.float32)), base, cand)
+    assert not veil["held"] and veil["unclaimed_share"] == 0.0 and veil["frames_checked"] == 0, veil
+
+
 def test_forward_scatter_is_named_beside_dense_marine_snow(tmp_path):
     """A pair: strong forward scatter under dense marine snow. The particles are a random process of their
     own that no proxy of the expected image explains; counted in the screening they shrank the blur's share
