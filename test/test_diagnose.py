@@ -353,6 +353,37 @@ def test_a_plausible_explanation_is_chosen_before_a_stretched_one(bags, monkeypa
     assert any("vignetting passed over" in m and "planted doubt" in m for m in said), said
 
 
+def test_a_residual_acceptance_is_declined_when_its_model_loses_more_theta(bags, monkeypatch):
+    """An effect accepted by the held-out residual adopts its least-squares fit. When θ scores that fit lower by
+    more margins than the residual's gain (own lamp trial, 640x480: camera response taking 2 % of the residual
+    while held-out θ fell 0.898 -> 0.887), θ is not blind there and the effect is declined; with residual
+    evidence far stronger than the fall it is taken. Planted: an acceptance by the residual on the control, a
+    least-squares fit that loses 0.05 of held-out θ."""
+    import uw_sil.fit.judges as jd
+    import uw_sil.fit.judges.base as jb
+    from uw_sil.fit.diagnose import diagnose_bag
+
+    cr = type(jd.JUDGES["camera_response"])
+    real_ls = jb.least_squares_model
+    monkeypatch.setattr(jb, "least_squares_model",
+                        lambda job, r: (lambda f: jb.replace(f, sel_pf=np.asarray(f.sel_pf) - 0.05))(real_ls(job, r)))
+    monkeypatch.setattr(cr, "plausibility", lambda self, values: [])
+    docs = {}
+    for strength in (1.0, 1000.0):
+        monkeypatch.setattr(cr, "accept", lambda self, r, current, margin, residual=None, s=strength:
+                            (True, s, "residual") if not current.effects else (False, 0.0, "theta"))
+        said = []
+        docs[strength] = diagnose_bag(bags["control"], k=6, effects_allowed=["camera_response"], max_effects=1,
+                                      progress=said.append).to_json()
+        docs[strength]["said"] = said
+    weak, strong = docs[1.0], docs[1000.0]
+    assert weak["final"]["effects"] == [] and weak["verdict"] == [], weak["verdict"]
+    row = next(c for c in weak["candidates"] if c["effect"] == "camera_response")
+    assert not row["accepted"] and row["declined"]["theta_fall"] > 0.04, row
+    assert any("camera_response declined" in m for m in weak["said"]), weak["said"]
+    assert strong["final"]["effects"] == ["camera_response"], strong["candidates"]
+
+
 def test_doubts_lower_confidence():
     """A fitted value on its box bound or outside deep-sea ranges is said, and costs confidence."""
     from uw_sil.fit.diagnose import _confidence, base_doubts

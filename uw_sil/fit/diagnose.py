@@ -440,7 +440,7 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
                 results[e] = JUDGES[e].refit(cheap, current)
                 if not JUDGES[e].absorb:
                     _keep_better(earlier, current, results[e])
-            best, rows = None, []
+            oks, rows = [], []
             for e, r in results.items():
                 # two held-out tests per candidate (θ and the residual): both margins corrected for 2 x candidates
                 margin = margin_for(r.sel_pf - current.sel_pf, 2 * len(cands), seed=seed)
@@ -456,9 +456,34 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
                 # then θ, the paper's criterion: the residual decides only where no candidate raised θ (it is the
                 # likelihood of the dark, noisy frames θ is blind to, not a rival ranking of the others)
                 rank = (not doubts, crit == "theta", strength)
-                if ok and (best is None or rank > best[5]):
-                    best = (e, r, strength, margin, crit, rank)
+                if ok:
+                    oks.append((e, r, strength, margin, crit, rank))
             candidates += rows
+            oks.sort(key=lambda c: c[5], reverse=True)
+            best, r_full = None, None
+            for choice in oks:
+                e, r, strength, margin, crit, _ = choice
+                if crit == "residual" and "ls_x" in r.extra:    # (pose_error's own residual: it is absorbed)
+                    # the model a residual acceptance adopts is the least-squares fit: θ scores it too, and where
+                    # θ is not blind its evidence against counts (in its margins, as the residual's for)
+                    r_full = least_squares_model(job, r)
+                    fall_pf = current.sel_pf - r_full.sel_pf
+                    fall_margin = margin_for(-fall_pf, 2 * len(cands), seed=seed)
+                    against = float(np.mean(fall_pf)) / fall_margin
+                    if against > max(1.0, strength):
+                        say(f"round {rnd}: {e} declined: its least-squares fit lowers held-out θ "
+                            f"{current.sel_pf.mean():.4f} -> {r_full.sel_pf.mean():.4f} ({against:.1f} margins), "
+                            f"more than it lowers the residual ({strength:.1f} margins)")
+                        for row in rows:
+                            if row["effect"] == e:
+                                row.update(accepted=False, declined={"theta_fall": float(np.mean(fall_pf)),
+                                                                     "theta_margins": against,
+                                                                     "residual_margins": float(strength)})
+                        latest[e] = -against
+                        r_full = None
+                        continue
+                best = choice
+                break
             steps.append({"round": rnd, "model": current.name, "theta_heldout": float(current.sel_pf.mean()),
                           "residual_heldout": float(np.mean(current.ls_sel_E)),
                           "theta_train": current.theta_fit, "tried": [row["effect"] for row in rows],
@@ -477,9 +502,7 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
             before = float(current.sel_pf.mean())
             before_E = current.ls_sel_E
             judge = JUDGES[e]
-            keep = crit == "residual" and "ls_x" in r.extra      # (pose_error's own residual: it is absorbed)
-            if keep:
-                r_full = least_squares_model(job, r)
+            keep = r_full is not None
             if judge.kind == "theta" and not judge.absorb and job.max_iter > cheap.max_iter and not keep:
                 say(f"round {rnd}: refitting {current.name} + {e} with the full budget")
                 starts = ([r.extra["ls_x"]] if "ls_x" in r.extra else []) + ([] if r.started_at_current else [r.x])
