@@ -550,7 +550,9 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
         job.exclude = {id(f): added_surface(f, geo) for f in job.fit_f + job.sel_f}
     for e in stat_effects:
         say(f"judging {e} on the held-out frames' statistics (new in every frame: θ cannot rise)")
+        t_e = time.perf_counter()
         r = JUDGES[e].refit(job, current)
+        timing[f"statistics_{e}_s"] = time.perf_counter() - t_e
         margin = margin_for(r.sel_pf - current.sel_pf, len(stat_effects), seed=seed)
         ok, strength, crit = JUDGES[e].accept(r, current, margin)
         row = _candidate_row(rnd + 1, current, e, r, margin, ok, strength, crit)
