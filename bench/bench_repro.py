@@ -10,6 +10,7 @@ The first seed is fitted twice, and the two results must be bit-identical.
 
     .venv/bin/python bench/bench_repro.py [--seeds 10] [--method pso|cmaes] [--frames K] [--stride S]
                                           [--max-iter N] [--tol T] [--patience P] [--restarts R]
+                                          [--swarm-size N]
 
 Last line: ``repro: seeds_ok=N/10 ...``.
 """
@@ -44,10 +45,11 @@ def main():
     ap.add_argument("--tol", type=float)
     ap.add_argument("--patience", type=int)
     ap.add_argument("--restarts", type=int)
+    ap.add_argument("--swarm-size", type=int, help="population (default: fit_frames', 20)")
     args = ap.parse_args()
     options = {k: v for k, v in (("method", args.method), ("k", args.frames), ("stride", args.stride),
                                  ("max_iter", args.max_iter), ("tol", args.tol), ("patience", args.patience),
-                                 ("restarts", args.restarts)) if v is not None}
+                                 ("restarts", args.restarts), ("swarm_size", args.swarm_size)) if v is not None}
     cam = CameraModel.from_fov(args.width, args.width * 3 // 4, 70.0)
     with tempfile.TemporaryDirectory() as d:
         bag = os.path.join(d, "trial.mcap")
