@@ -254,3 +254,15 @@ def test_nodes_interrupted_while_starting_shut_down_cleanly(ros, monkeypatch):
     with pytest.raises(KeyboardInterrupt):
         sim_camera.SimCameraNode(context=ros)
     ros.try_shutdown()          # destroys both half-built nodes
+
+
+def test_an_enhancer_interrupted_while_starting_is_destroyed_cleanly(ros):
+    """The enhancer's destroy_node stops its worker and guards its publishers; interrupted in its constructor
+    right after the node itself exists (no worker, no queue yet), destroying it must not raise."""
+    from rclpy.node import Node
+
+    from uw_sil.nodes.enhancer import EnhancerNode
+
+    node = EnhancerNode.__new__(EnhancerNode)
+    Node.__init__(node, "enhancer", context=ros)
+    node.destroy_node()

@@ -40,6 +40,7 @@ Parameters
 from __future__ import annotations
 
 import collections
+import contextlib
 import json
 import sys
 import threading
@@ -168,6 +169,7 @@ class EnhancerNode(Node):
         self._cv = threading.Condition()
         self._busy = False
         self._stop = False
+        self._pub_lock = threading.Lock()           # the worker's publishing vs destroy_node
         self.counts = collections.Counter()
         self.bad = collections.Counter()
         self.latency = collections.deque(maxlen=LATENCY_WINDOW)
@@ -416,8 +418,12 @@ class EnhancerNode(Node):
                 raise BadInput("geometry" if "sim" in str(e) else "input", str(e)) from None
         for w in res.warnings:
             self.get_logger().warning(w, throttle_duration_sec=10.0)
-        self.pub_image.publish(Image(header=img.header, **rgb_to_image_fields(res.image)))
-        self.pub_info.publish(CameraInfo(header=img.header, **camera.camera_info_fields()))
+        out = Image(header=img.header, **rgb_to_image_fields(res.image))
+        with self._pub_lock:            # not while destroy_node tears the publishers down
+            if self._stop:
+                return
+            self.pub_image.publish(out)
+            self.pub_info.publish(CameraInfo(header=img.header, **camera.camera_info_fields()))
         self.latency.append(time.monotonic() - t_ready)
         self.counts["enhanced"] += 1
         self.last = {"restored_fraction": round(res.restored_fraction, 4), "b_source": res.b_source,
@@ -465,11 +471,17 @@ class EnhancerNode(Node):
         self.finished.set_result(True)
 
     def destroy_node(self):
-        with self._cv:
-            self._stop = True
-            self._cv.notify_all()
-        self._worker.join(timeout=5.0)
-        super().destroy_node()
+        # (also for a node whose constructor was interrupted: rclpy destroys it at shutdown, built or not)
+        cv, worker = getattr(self, "_cv", None), getattr(self, "_worker", None)
+        if cv is not None:
+            with cv:
+                self._stop = True
+                cv.notify_all()
+        if worker is not None:
+            worker.join(timeout=5.0)
+        # a frame still being restored after that finds _stop set when it would publish
+        with getattr(self, "_pub_lock", None) or contextlib.nullcontext():
+            super().destroy_node()
 
 
 def _spin(node) -> int:
