@@ -9,10 +9,12 @@ bootstrap margin. Next to another accepted effect the noise model is kept only i
 from __future__ import annotations
 
 import math
+from concurrent.futures import ThreadPoolExecutor
 from typing import Optional
 
 import numpy as np
 
+from ..._shared.process import default_threads
 from ..diagfit import EffectModel
 from ..residuals import reduce_frame
 from .base import Judge, Refit, bootstrap_se
@@ -98,19 +100,22 @@ def noise_refit(fit_f, held_f, base_x, sig, fog, seed, ref_held_pf, base_theta_t
     x0 = model.x0(base_x, {"sensor_noise": start})
     free = np.arange(7, len(x0))
 
+    def frame_dist(k, X):
+        imgs = model.simulate(k, X) * 255.0
+        d = np.array([dist(real_fit[k], stats_of(imgs[j], Sfit[k], hfit[k])) for j in range(len(X))])
+        return np.where(np.isnan(d), 0.0, d)
+
     def objective(U):
         X = np.repeat(x0[None], len(U), axis=0)
         X[:, free] = U
-        out = np.zeros(len(U))
-        for k in range(len(rfit)):
-            imgs = model.simulate(k, X) * 255.0
-            for j in range(len(U)):
-                d = dist(real_fit[k], stats_of(imgs[j], Sfit[k], hfit[k]))
-                out[j] += 0.0 if np.isnan(d) else d
-        return -out
+        # the frames in parallel (full-resolution simulations and statistics), summed in frame order:
+        # the same value with any number of threads
+        per_frame = list(pool.map(lambda k: frame_dist(k, X), range(len(rfit))))
+        return -np.sum(per_frame, axis=0)
 
-    res = optimize(objective, lo[free], hi[free], method="cmaes", seed=seed, max_iter=8, swarm_size=6,
-                   x0=x0[free], sigma0=0.15)
+    with ThreadPoolExecutor(default_threads(), thread_name_prefix="uw_sil-noise") as pool:
+        res = optimize(objective, lo[free], hi[free], method="cmaes", seed=seed, max_iter=8, swarm_size=6,
+                       x0=x0[free], sigma0=0.15)
     x = x0.copy()
     x[free] = res.x_best
     # held-out: statistics distance, base (estimated constant Gaussian noise) vs candidate; θ at full resolution
