@@ -61,7 +61,7 @@ setup(
         ],
         # `uw-sil batch --executor dask://HOST:PORT`
         "dask": ["dask[distributed]>=2024.1"],
-        "test": ["pytest>=7", "dask[distributed]>=2024.1", "hypothesis>=6.100"],
+        "test": ["pytest>=7", "pytest-xdist>=3.5", "dask[distributed]>=2024.1", "hypothesis>=6.100"],
     },
     zip_safe=True,
     maintainer="uw_sil developers",
