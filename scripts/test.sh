@@ -7,7 +7,5 @@ cd "$here"
 # DDS isolation for the tests that start ROS 2 nodes (each test picks its own ROS_DOMAIN_ID).
 export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
 export PYOPENGL_PLATFORM="${PYOPENGL_PLATFORM:-osmesa}"
-# Two test processes (pytest-xdist), one file each at a time (a module's fixtures are built once): the
-# suite is half waiting for node graphs, so two share the 2-core machine well. UW_SIL_TEST_WORKERS=0 runs
-# it in one process.
-exec .venv/bin/python -m pytest test -q -n "${UW_SIL_TEST_WORKERS:-2}" --dist loadfile "$@"
+source "$here/scripts/pytest_args.sh"
+exec .venv/bin/python -m pytest test "${UW_SIL_PYTEST_ARGS[@]}" "$@"
