@@ -80,12 +80,18 @@ class Workspace:
         return Proc(self.cmd(*args), self.env(domain), name=name or " ".join(map(str, args[:3])))
 
 
+#: What the test run itself writes into the tree meanwhile (the other test process too): not the build's.
+_RUN_WRITES = (".hypothesis/", ".pytest_cache/", "__pycache__/")
+
+
 def _git_status() -> str:
+    """The tree's status, ignored files included, without what the test run writes itself."""
     try:
-        return subprocess.run(["git", "status", "--porcelain", "--ignored", "--untracked-files=all"], cwd=ROOT,
-                              capture_output=True, text=True, timeout=60).stdout
+        out = subprocess.run(["git", "status", "--porcelain", "--ignored", "--untracked-files=all"], cwd=ROOT,
+                             capture_output=True, text=True, timeout=60).stdout
     except (OSError, subprocess.SubprocessError):
         return "(git unavailable)"
+    return "".join(line for line in out.splitlines(keepends=True) if not any(w in line for w in _RUN_WRITES))
 
 
 @pytest.fixture(scope="session")
