@@ -87,8 +87,7 @@ for i in $(seq "$n"); do
   else
     # what scripts/test.sh runs after its set-up step, with the selection given (test.sh itself always
     # passes `test`, so a file given after it would not narrow the run); without paths pytest takes test/
-    (cd "$clone" && export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST PYOPENGL_PLATFORM="${PYOPENGL_PLATFORM:-osmesa}" \
-       PYTHONPATH="$clone${PYTHONPATH:+:$PYTHONPATH}" && source scripts/pytest_args.sh \
+    (cd "$clone" && export PYTHONPATH="$clone${PYTHONPATH:+:$PYTHONPATH}" && source scripts/pytest_args.sh \
        && exec "${venv:-$clone/.venv}/bin/python" -m pytest "${UW_SIL_PYTEST_ARGS[@]}" "${pytest_args[@]}") > "$log" 2>&1
   fi
   rc=$?
