@@ -359,14 +359,20 @@ def test_a_residual_acceptance_is_declined_when_its_model_loses_more_theta(bags,
     while held-out θ fell 0.898 -> 0.887), θ is not blind there and the effect is declined; with residual
     evidence far stronger than the fall it is taken. Planted: an acceptance by the residual on the control, a
     least-squares fit that loses 0.05 of held-out θ."""
+    from dataclasses import replace
+
     import uw_sil.fit.judges as jd
     import uw_sil.fit.judges.base as jb
     from uw_sil.fit.diagnose import diagnose_bag
 
     cr = type(jd.JUDGES["camera_response"])
     real_ls = jb.least_squares_model
-    monkeypatch.setattr(jb, "least_squares_model",
-                        lambda job, r: (lambda f: jb.replace(f, sel_pf=np.asarray(f.sel_pf) - 0.05))(real_ls(job, r)))
+
+    def losing_ls(job, r):
+        fit = real_ls(job, r)
+        return replace(fit, sel_pf=np.asarray(fit.sel_pf) - 0.05)
+
+    monkeypatch.setattr(jb, "least_squares_model", losing_ls)
     monkeypatch.setattr(cr, "plausibility", lambda self, values: [])
     docs = {}
     for strength in (1.0, 1000.0):

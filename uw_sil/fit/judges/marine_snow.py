@@ -101,7 +101,7 @@ def unclaimed_theta(rframes, model, x_base, x_cand, seed: int = 0) -> dict:
         claimed = binary_dilation(np.abs(sims[1] - sims[0]).max(axis=-1) > CLAIM_DN, iterations=CLAIM_GROW)
         free = ~claimed
         share.append(float(free.mean()))
-        if free.mean() < MIN_UNCLAIMED:
+        if share[-1] < MIN_UNCLAIMED:
             base.append(np.nan)
             cand.append(np.nan)
             continue
@@ -114,14 +114,14 @@ def unclaimed_theta(rframes, model, x_base, x_cand, seed: int = 0) -> dict:
         cand.append(float(c))
     base, cand = np.array(base), np.array(cand)
     ok_frames = np.isfinite(base) & np.isfinite(cand)
-    fall_pf = (base - cand)[ok_frames]
-    fall = float(fall_pf.mean()) if fall_pf.size else float("nan")
-    margin = margin_for(-fall_pf, seed=seed) if fall_pf.size else float("nan")
-    return {"base": float(np.nanmean(base)) if ok_frames.any() else None,
-            "candidate": float(np.nanmean(cand)) if ok_frames.any() else None,
-            "fall": fall if fall_pf.size else None, "margin": margin if fall_pf.size else None,
-            "unclaimed_share": float(np.mean(share)), "frames_checked": int(ok_frames.sum()),
-            "held": bool(fall_pf.size) and not fall > margin}
+    out = {"base": None, "candidate": None, "fall": None, "margin": None,
+           "unclaimed_share": float(np.mean(share)), "frames_checked": int(ok_frames.sum()), "held": False}
+    if ok_frames.any():
+        fall_pf = (base - cand)[ok_frames]
+        fall, margin = float(fall_pf.mean()), margin_for(-fall_pf, seed=seed)
+        out.update(base=float(base[ok_frames].mean()), candidate=float(cand[ok_frames].mean()), fall=fall,
+                   margin=margin, held=not fall > margin)
+    return out
 
 
 class MarineSnowJudge(Judge):
