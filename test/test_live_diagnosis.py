@@ -425,7 +425,8 @@ def test_uw_sil_launch_backward_diagnose(lamp_bag, tmp_path):
             samples = list(read_samples(lamp_bag))
             _check_live_diagnosis(watch, launch, tmp_path, samples, "uw-sil launch")
             # the pilot's steps are printed as the CLI prints them
-            for step in ("diagnosing: base fit on 3 frames", "diagnosing: round 1: refitting base + artificial_light",
+            for step in ("diagnosing: base fit on 3 frames", "diagnosing: round 1: refitting base + each of",
+                         "diagnosing: round 1: base + artificial_light refitted",
                          "diagnosing: round 1: accepted artificial_light"):
                 assert step in launch.text, step
             launch.signal(2)

@@ -307,6 +307,15 @@ class EffectModel:
         self._local = threading.local()          # PreparedModel is not thread-safe: one set per thread
         self.pms = self._prepare()
 
+    def __getstate__(self):
+        # the prepared per-frame models are rebuilt where the model is unpickled (a worker process)
+        return {k: v for k, v in self.__dict__.items() if k not in ("pms", "_local")}
+
+    def __setstate__(self, state):
+        self.__dict__.update(state)
+        self._local = threading.local()
+        self.pms = self._prepare()
+
     def like(self, rframes, seed: Optional[int] = None) -> "EffectModel":
         """The same model (effects, free parameters, fixed values) on other frames."""
         return EffectModel(rframes, self.effects, self.values, self.free, self.fog,

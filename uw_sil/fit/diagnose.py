@@ -324,6 +324,37 @@ def _eliminate(job, current, accepted: list, seed: int, say, candidates: list, s
     return current, dropped
 
 
+def _refit_one(shared, effect):
+    """One candidate's refit (:meth:`uw_sil.fit.judges.base.Judge.refit`), in a worker process or here; its
+    time in ``extra["refit_s"]``."""
+    from .judges import JUDGES
+
+    job, current = shared
+    t = time.perf_counter()
+    r = JUDGES[effect].refit(job, current)
+    r.extra["refit_s"] = time.perf_counter() - t
+    return r
+
+
+def _refit_all(workers, cands: list, job, current, say, label: str, took: dict) -> dict:
+    """Every candidate's refit of a round, side by side in the diagnosis's worker processes (the same results
+    as one after the other); ``{effect: Refit}`` in the order of ``cands``. The costliest refits first (their
+    time in an earlier round, ``took``, updated here; else the plug-in's :attr:`~uw_sil.fit.judges.base.Judge.cost`)."""
+    from .judges import JUDGES
+
+    n = min(workers.processes, len(cands))
+    say(f"{label}: refitting {current.name} + each of {', '.join(cands)} "
+        f"({f'{n} processes side by side' if n > 1 else 'one after the other'})")
+
+    def done(i, r):
+        took[cands[i]] = r.extra["refit_s"]
+        say(f"{label}: {current.name} + {cands[i]} refitted ({r.extra['refit_s']:.1f} s)")
+
+    res = workers.map(_refit_one, cands, shared=(job, current), interrupt=job.interrupt, done=done,
+                      cost=[took.get(e, JUDGES[e].cost) for e in cands])
+    return dict(zip(cands, res))
+
+
 def _keep_better(earlier: dict, current, r):
     """Remember the refit ``r`` of ``current`` + its effect under its effect set, if it is the best on the fit
     frames so far (what backward elimination compares a model without an effect with)."""
@@ -335,24 +366,30 @@ def _keep_better(earlier: dict, current, r):
 def diagnose_frames(frames: list, fog: str = "exp2", seed: int = 0, max_effects: int = 4, max_iter: int = 30,
                     popsize: int = 12, progress: Optional[Callable[[str], None]] = None,
                     interrupt: Optional[Callable] = None, effects_allowed=None, source: str = "",
-                    later_candidates: int = LATER_CANDIDATES) -> Diagnosis:
+                    later_candidates: int = LATER_CANDIDATES, processes: Optional[int] = None) -> Diagnosis:
     """Diagnose already loaded frames (:func:`uw_sil.fit.residuals.load_frames`); see the module docstring.
 
     ``max_effects``: effects in the final model at most (greedy forward selection stops there);
     ``max_iter``/``popsize``: the CMA-ES budget of every fit (base and candidates alike);
-    ``effects_allowed``: names of the effects considered (default all with a plug-in).
+    ``effects_allowed``: names of the effects considered (default all with a plug-in);
+    ``processes``: worker processes refitting a round's candidates side by side (default: the thread budget,
+    :func:`uw_sil._shared.process.default_threads`; 1 = all in this process; the result is the same).
 
     BLAS runs on one thread meanwhile (the diagnosis evaluates θ on threads of its own; OpenBLAS threads on
     top of them oversubscribe the cores: a least-squares step's SVD took 12x longer on a busy machine)."""
     from threadpoolctl import threadpool_limits
 
-    with threadpool_limits(limits=1, user_api="blas"):
+    from .._shared.workers import WorkerPool
+
+    # the workers start (and import the diagnosis) while the base fit runs here
+    with threadpool_limits(limits=1, user_api="blas"), \
+            WorkerPool(processes, preload=("uw_sil.fit.diagnose", "uw_sil.fit.judges")).start() as workers:
         return _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, interrupt, effects_allowed,
-                         source, later_candidates)
+                         source, later_candidates, workers)
 
 
 def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, interrupt, effects_allowed, source,
-              later_candidates) -> Diagnosis:
+              later_candidates, workers) -> Diagnosis:
     from ..sim.effects import get_effect
     from ..sim.params import ParamSpace
     from .backward import linear_start
@@ -419,7 +456,7 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
     order = {e: JUDGES[e].order(job) for e in allowed}
     pool = sorted((e for e in allowed if JUDGES[e].kind == "theta"), key=lambda e: -order[e])
     stat_effects = [e for e in allowed if JUDGES[e].kind == "statistic"]
-    candidates, steps, accepted, latest, earlier = [], [], [], {}, {}
+    candidates, steps, accepted, latest, earlier, took = [], [], [], {}, {}, {}
     fits = {"base": {"x": base_fit.x, "held_pf": base_sel_pf, "model": empty, "model_effects": [],
                      "held_E": base_sel_E}}
     rnd = 0
@@ -433,11 +470,9 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
             if not cands:
                 break
             t0 = time.perf_counter()
-            results = {}
             cheap = replace(job, max_iter=min(job.max_iter, CHEAP_ITER))
+            results = _refit_all(workers, cands, cheap, current, say, f"round {rnd}", took)
             for e in cands:
-                say(f"round {rnd}: refitting {current.name} + {e}")
-                results[e] = JUDGES[e].refit(cheap, current)
                 if not JUDGES[e].absorb:
                     _keep_better(earlier, current, results[e])
             oks, rows = [], []

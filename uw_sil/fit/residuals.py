@@ -92,7 +92,11 @@ class ReducedFrame:
     obj: np.ndarray
     water: np.ndarray
     camera: object = None
-    extra: dict = field(default_factory=dict)
+    extra: dict = field(default_factory=dict)    # what is computed once per frame (θ's reference), a cache
+
+    def __getstate__(self):
+        # the cache is rebuilt where it is needed: θ's reference of a 320x240 frame pickles to ~25 MB
+        return {**self.__dict__, "extra": {}}
 
     @property
     def shape(self) -> tuple:

@@ -17,6 +17,7 @@ class ArtificialLightJudge(Judge):
     free = ("offset_x", "offset_y", "toe_in", "half_angle", "shape", "balance", "fill", "power", "veil", "tint_r",
             "tint_b")
     res = "low"
+    cost = 9.0
     residual_evidence = True
     sigma = 0.12
     # no uniform light at all (lamps alone: the deep sea), one lamp only, a symmetric pair

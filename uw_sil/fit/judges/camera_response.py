@@ -8,6 +8,7 @@ class CameraResponseJudge(Judge):
     effect = "camera_response"
     free = ("gamma", "gain_r", "gain_g", "gain_b", "black")
     res = "low"
+    cost = 4.0
     residual_evidence = True
 
     def order(self, job):

@@ -13,6 +13,7 @@ class ForwardScatterJudge(Judge):
     free = ("strength", "width", "tail")
     physical_bounds = ("tail",)        # a share of 0 or 1
     res = "high"
+    cost = 10.0
 
     def order(self, job):
         sig = super().order(job)              # the signature's score

@@ -46,6 +46,7 @@ class PoseErrorJudge(Judge):
     free = ("tx", "ty", "tz", "rx", "ry", "rz")
     fixed = {"jitter_t": 0.0, "jitter_r": 0.0}
     res = "high"
+    cost = 11.0
     sigma = 0.03
     absorb = True
 

@@ -9,6 +9,7 @@ class UnmodeledGeometryJudge(Judge):
     free = ("floor_y", "tilt", "albedo", "contrast")
     physical_bounds = ("contrast",)        # a share of 0 or 1
     res = "low"
+    cost = 5.0
     sigma = 0.12
     alt_starts = ({"floor_y": -0.8, "albedo": 1.0, "contrast": 1.0},
                   {"floor_y": -2.0, "albedo": 1.0, "contrast": 0.5},
