@@ -141,7 +141,9 @@ def test_the_callers_script_is_not_run_again_in_the_workers(tmp_path):
 
 def test_a_diagnosis_is_the_same_with_one_process_or_two(tmp_path):
     """The candidates of a round refitted side by side in two worker processes give the document of the
-    refits one after the other (every number; only the times differ)."""
+    refits one after the other: the same selection, verdict and parameters, every number within 1e-5 (only the
+    times differ). Not bit for bit: the same refit in a process that computed other things before can differ
+    in the 7th digit (measured on one of three 640x480 bags: θ 0.9065968 against 0.9065970)."""
     from uw_sil.bags.synth import synthesize_trial
     from uw_sil.fit.diagnose import diagnose_bag
     from uw_sil.sim.camera import CameraModel
@@ -156,7 +158,8 @@ def test_a_diagnosis_is_the_same_with_one_process_or_two(tmp_path):
         return _without_times(d)
 
     one, two = doc(1), doc(2)
-    assert one == two
+    assert _largest_difference(one, two) <= 1e-5, _largest_difference(one, two, where=True)
+    assert [s["chosen"] for s in one["selection"]] == [s["chosen"] for s in two["selection"]]
     assert any(c.get("round") == 1 for c in two["candidates"])
 
 
@@ -166,3 +169,31 @@ def _without_times(o):
     if isinstance(o, list):
         return [_without_times(v) for v in o]
     return o
+
+
+def _largest_difference(a, b, path="", where=False):
+    """The largest absolute difference of two documents' numbers (inf where their structure or any other
+    value differs); ``where``: also the path of the first such place."""
+    found = []
+
+    def walk(x, y, p):
+        if isinstance(x, dict) and isinstance(y, dict):
+            if set(x) != set(y):
+                found.append((float("inf"), p))
+                return
+            for k in x:
+                walk(x[k], y[k], f"{p}.{k}")
+        elif isinstance(x, list) and isinstance(y, list):
+            if len(x) != len(y):
+                found.append((float("inf"), p))
+                return
+            for i, (u, v) in enumerate(zip(x, y)):
+                walk(u, v, f"{p}[{i}]")
+        elif isinstance(x, (int, float)) and isinstance(y, (int, float)) and not isinstance(x, bool):
+            found.append((abs(float(x) - float(y)), p))
+        elif x != y:
+            found.append((float("inf"), p))
+
+    walk(a, b, path)
+    worst = max(found, default=(0.0, ""))
+    return worst if where else worst[0]

@@ -532,7 +532,7 @@ def cmd_diagnose(args) -> int:
 
     diag = diagnose_bag(args.bag, k=args.frames or 8, model=args.model, image_topic=args.image_topic,
                         seed=args.seed, max_effects=args.max_effects, fog=args.fog, progress=progress,
-                        interrupt=_raise_if_interrupted)
+                        interrupt=_raise_if_interrupted, processes=getattr(args, "processes", None))
     _raise_if_interrupted()
     for line in diag.summary_lines():
         print(line)
@@ -753,9 +753,10 @@ def build_parser() -> argparse.ArgumentParser:
     ft.set_defaults(func=cmd_features)
 
     g = sub.add_parser("diagnose", help="find the physics a recording holds that the simulation lacks",
-                       description="Fits the base model, locates the mismatch, tests each effect's signature, "
-                                   "refits the leading effects and accepts one only if it raises θ on held-out "
-                                   "frames beyond the fit's noise. Exit 0 whatever the verdict.")
+                       description="Fits the base model, locates the mismatch, refits the model with every "
+                                   "effect in turn and adds the one that raises held-out θ (or lowers the held-out "
+                                   "residual) most beyond its noise margin, round after round; effects new in every "
+                                   "frame (particles, noise) by held-out statistics. Exit 0 whatever the verdict.")
     g.add_argument("--bag", help="recording with /camera/image_raw, /camera/camera_info, /panel/pose")
     g.add_argument("--images", help="footage without poses or scene model: a folder of images or a bag")
     g.add_argument("--image-topic", default="/camera/image_raw")
@@ -770,6 +771,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="effects in the final model at most (greedy forward selection stops there; default 4)")
     g.add_argument("--fog", choices=["exp2", "exp", "none"], default="exp2")
     g.add_argument("--seed", type=int, default=0)
+    g.add_argument("--processes", type=int, default=None,
+                   help="worker processes refitting a round's candidates side by side (default: the thread budget, "
+                        "UW_SIL_THREADS or up to 2; 1: all in this process); the same selection, numbers equal to ~1e-7")
     g.set_defaults(func=cmd_diagnose)
 
     d = sub.add_parser("demo", help="synthesize a trial, fit it, enhance it, write the report, and diagnose a second dive with a concealed effect")

@@ -50,4 +50,3 @@ def prefer_array_malloc(mmap_threshold: int = 64 << 20, trim_threshold: int = 25
     except (OSError, AttributeError):
         return False
     return bool(mallopt(_M_MMAP_THRESHOLD, int(mmap_threshold))) and bool(mallopt(_M_TRIM_THRESHOLD, int(trim_threshold)))
-

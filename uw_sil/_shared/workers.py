@@ -14,7 +14,8 @@ standard input and output (length-prefixed pickles; what the work prints goes to
   which stops the workers.
 
 Each worker gets one thread of the work's budget (``UW_SIL_THREADS=1``, BLAS on one thread). Results do not
-depend on the number of processes.
+depend on which worker computes an item; the work itself may round differently in a process that computed
+other things before (a diagnosis: the 7th digit of one θ on one of three bags, uw_sil.fit.diagnose).
 """
 from __future__ import annotations
 
@@ -138,7 +139,7 @@ class WorkerPool:
         self.processes = default_threads(processes)
         self.preload = tuple(preload)
         self._workers: list = []
-        self._calls = 0
+        self._shared = (0, None)             # (number, object) of the last shared object handed out
 
     def start(self) -> "WorkerPool":
         if self.processes > 1 and not self._workers:
@@ -151,8 +152,9 @@ class WorkerPool:
         function, ``shared``, the items and the results must pickle); an item's exception is raised here (the
         first to arrive; the workers are then stopped).
 
-        ``shared`` (what every item needs, e.g. the frames) goes to each worker once per call, and is the same
-        object for the items a worker computes.
+        ``shared`` (what every item needs, e.g. the frames) goes to each worker once, and is the same object for
+        the items a worker computes, also in later calls with the same (``is``) object: a worker may keep what
+        it built from it (an objective's references) from call to call.
 
         ``interrupt`` is called here about every 0.1 s while the workers run (it raises to stop them);
         ``done(i, result)`` as each result arrives. ``cost``: the items' expected relative costs; the costliest
@@ -169,8 +171,9 @@ class WorkerPool:
                     done(i, out[-1])
             return out
         self.start()
-        self._calls += 1
-        token = (self._calls, shared)
+        if shared is not self._shared[1]:     # (held here, so that it stays the object the workers have)
+            self._shared = (self._shared[0] + 1, shared)
+        token = self._shared
         out = [None] * len(items)
         todo = list(range(len(items)))
         if cost is not None:

@@ -105,9 +105,16 @@ class FrameObjective:
     """
 
     def __init__(self, rframes, model, noise, seed: int = 0, channels: str = "HSV", batch: int = 16,
-                 workers: Optional[int] = None):
+                 workers: Optional[int] = None, pool=None):
         from ..sim.noise import NoiseField
 
+        # with a pool of worker processes (uw_sil._shared.workers.WorkerPool) a batch is shared out among them
+        # instead of among threads: the same values, without the GIL
+        self._remote = (_RemoteObjective(rframes, model, noise, seed, channels, batch)
+                        if pool is not None and pool.processes > 1 else None)
+        self.pool = pool
+        if self._remote is not None:
+            workers = 1
         self.rframes = list(rframes)
         self.model = model
         self.workers = default_threads(workers)
@@ -123,6 +130,10 @@ class FrameObjective:
     def per_frame(self, X) -> np.ndarray:
         """θ per candidate and frame, (N, K)."""
         X = np.atleast_2d(np.asarray(X, dtype=float))
+        if self._remote is not None and len(X) > 1:
+            parts = [p for p in np.array_split(np.arange(len(X)), self.pool.processes) if p.size]
+            self.n_calls += len(X)
+            return np.concatenate(self.pool.map(_remote_rows, [X[p] for p in parts], shared=self._remote))
         out = np.full((len(X), len(self.rframes)), np.nan)
         parts = [p for p in np.array_split(np.arange(len(X)), self.workers) if p.size]
         if len(parts) == 1:
@@ -172,6 +183,30 @@ class FrameObjective:
 
     def __exit__(self, *exc):
         self.close()
+
+
+class _RemoteObjective:
+    """What a worker process needs to build the same :class:`FrameObjective` (on one thread); built there once
+    and kept with this object, which the worker keeps while the objective's calls come."""
+
+    def __init__(self, rframes, model, noise, seed, channels, batch):
+        self.args = (list(rframes), model, noise, seed, channels, batch)
+        self._objective = None
+
+    def __getstate__(self):
+        return {"args": self.args, "_objective": None}
+
+    def objective(self) -> "FrameObjective":
+        if self._objective is None:
+            rframes, model, noise, seed, channels, batch = self.args
+            self._objective = FrameObjective(rframes, model, noise, seed=seed, channels=channels, batch=batch,
+                                             workers=1)
+        return self._objective
+
+
+def _remote_rows(remote: _RemoteObjective, X) -> np.ndarray:
+    """θ per candidate and frame of the rows X, in a worker process."""
+    return remote.objective().per_frame(X)
 
 
 def theta_reference(rf: ReducedFrame, channels: str = "HSV"):

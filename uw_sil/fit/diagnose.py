@@ -20,7 +20,9 @@ camera info and panel poses, and the scene model; never a ground-truth sidecar):
    is refitted jointly with it, and the next round tries the :data:`LATER_CANDIDATES` remaining effects with
    the best evidence in their latest refit, until none beats its margin or ``max_effects`` are in. A refit
    never ends below the model it contains on the fit frames (:func:`uw_sil.fit.judges.base.theta_refit`). A
-   pose correction, once accepted, is applied to the frames' geometry. Then **backward elimination**: every
+   pose correction, once accepted, is applied to the frames' geometry. A round's refits run side by side in
+   worker processes (:mod:`uw_sil._shared.workers`; the GIL kept threads to 1.15x), and so do the base fit's
+   θ evaluations. Then **backward elimination**: every
    effect accepted before the last must still beat its margin against the final model without it, refitted
    (:func:`uw_sil.fit.judges.base.refit_without`), or it is dropped (a lamp footprint first taken for
    vignetting, then explained by the lamps).
@@ -55,7 +57,7 @@ from typing import Callable, Optional
 import numpy as np
 
 from ..sim.params import RGB_NAMES
-from .diagfit import BASE_SIGMA0, BaseModel, EffectModel, fit_model, noise_sigmas
+from .diagfit import BASE_SIGMA0, BaseModel, EffectModel, FrameObjective, fit_model, noise_sigmas
 from .residuals import (LABEL_PANEL, ReducedFrame, base_sim, locate, load_frames, reduce_frame,
                         reduction_factor, residual_maps, split_frames)
 
@@ -337,9 +339,10 @@ def _refit_one(shared, effect):
 
 
 def _refit_all(workers, cands: list, job, current, say, label: str, took: dict) -> dict:
-    """Every candidate's refit of a round, side by side in the diagnosis's worker processes (the same results
-    as one after the other); ``{effect: Refit}`` in the order of ``cands``. The costliest refits first (their
-    time in an earlier round, ``took``, updated here; else the plug-in's :attr:`~uw_sil.fit.judges.base.Judge.cost`)."""
+    """Every candidate's refit of a round, side by side in the diagnosis's worker processes (the results of
+    one after the other, up to rounding: :func:`diagnose_frames`); ``{effect: Refit}`` in the order of
+    ``cands``. The costliest refits first (their time in an earlier round, ``took``, updated here; else the
+    plug-in's :attr:`~uw_sil.fit.judges.base.Judge.cost`)."""
     from .judges import JUDGES
 
     n = min(workers.processes, len(cands))
@@ -373,7 +376,11 @@ def diagnose_frames(frames: list, fog: str = "exp2", seed: int = 0, max_effects:
     ``max_iter``/``popsize``: the CMA-ES budget of every fit (base and candidates alike);
     ``effects_allowed``: names of the effects considered (default all with a plug-in);
     ``processes``: worker processes refitting a round's candidates side by side (default: the thread budget,
-    :func:`uw_sil._shared.process.default_threads`; 1 = all in this process; the result is the same).
+    :func:`uw_sil._shared.process.default_threads`; 1 = all in this process). The selection is the same; the
+    numbers agree to about 1e-7: a refit in a process that computed other things before can round differently
+    (measured with ``bench/bench_diagnose_speed.py``: identical documents on two physically based bags, θ
+    0.9065968 against 0.9065970 in one full refit of a third; the cause, somewhere in the lamp and seafloor
+    simulation, is not found).
 
     BLAS runs on one thread meanwhile (the diagnosis evaluates θ on threads of its own; OpenBLAS threads on
     top of them oversubscribe the cores: a least-squares step's SVD took 12x longer on a busy machine)."""
@@ -420,8 +427,10 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
     t0 = time.perf_counter()
     say(f"base fit on {len(fit_f)} frames ({rfit[0].shape[1]}x{rfit[0].shape[0]}), {len(held_f)} held out")
     x_lin = linear_start([_ls_frame(r) for r in rfit], ParamSpace("rgb"), fog=fog)
-    base_fit = fit_model(BaseModel(rfit, fog), rfit, nfit, x_lin, sigma0=BASE_SIGMA0, seed=seed, max_iter=max_iter,
-                         popsize=popsize, patience=PATIENCE, interrupt=interrupt)
+    with FrameObjective(rfit, BaseModel(rfit, fog), nfit, seed=seed, batch=popsize, pool=workers) as objective:
+        base_fit = fit_model(BaseModel(rfit, fog), rfit, nfit, x_lin, sigma0=BASE_SIGMA0, seed=seed,
+                             max_iter=max_iter, popsize=popsize, patience=PATIENCE, interrupt=interrupt,
+                             objective=objective)
     timing["base_fit_s"] = time.perf_counter() - t0
 
     # ---------------------------------------------------------------- evidence that orders the work (fit frames)
