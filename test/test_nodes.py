@@ -303,8 +303,9 @@ def test_bag_play_loops_and_publishes_the_bag_clock(ros, trial):
         listener.destroy_node()
     stamps = [m.log_time_ns for m in iter_raw(trial, "/panel/pose")]
     assert poses[:30] == (stamps * 3)[:30]
-    # the bag time: within the bag (plus what passes between its last message and the restart)
-    assert len(clock) >= 5 and all(info.start_ns <= c <= info.end_ns + 100_000_000 for c in clock), clock
+    # the bag time: within the bag (it stands at the end until the loop restarts, however late that is: an
+    # allowance of 100 ms of bag time, 10 ms of wall time at rate 10, failed once beside a CPU hog)
+    assert len(clock) >= 5 and all(info.start_ns <= c <= info.end_ns for c in clock), clock
 
 
 def test_bag_play_rejects_missing_topics_and_types(ros, trial, tmp_path):

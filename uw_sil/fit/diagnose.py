@@ -427,10 +427,10 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
     t0 = time.perf_counter()
     say(f"base fit on {len(fit_f)} frames ({rfit[0].shape[1]}x{rfit[0].shape[0]}), {len(held_f)} held out")
     x_lin = linear_start([_ls_frame(r) for r in rfit], ParamSpace("rgb"), fog=fog)
-    with FrameObjective(rfit, BaseModel(rfit, fog), nfit, seed=seed, batch=popsize, pool=workers) as objective:
-        base_fit = fit_model(BaseModel(rfit, fog), rfit, nfit, x_lin, sigma0=BASE_SIGMA0, seed=seed,
-                             max_iter=max_iter, popsize=popsize, patience=PATIENCE, interrupt=interrupt,
-                             objective=objective)
+    base_model = BaseModel(rfit, fog)
+    with FrameObjective(rfit, base_model, nfit, seed=seed, batch=popsize, pool=workers) as objective:
+        base_fit = fit_model(base_model, rfit, nfit, x_lin, sigma0=BASE_SIGMA0, seed=seed, max_iter=max_iter,
+                             popsize=popsize, patience=PATIENCE, interrupt=interrupt, objective=objective)
     timing["base_fit_s"] = time.perf_counter() - t0
 
     # ---------------------------------------------------------------- evidence that orders the work (fit frames)

@@ -114,6 +114,7 @@ class BagPlayNode(Node):
         self.topics = list(self.publishers_)
         self.total = sum(info.topics[t].count or 0 for t in self.topics)
         self.start_ns = info.start_ns
+        self.end_ns = info.end_ns
         self.get_logger().info(f"{info.path}: {self.total} messages on {len(self.topics)} topics over "
                                f"{info.duration_s:.2f} s, playing at rate {self.rate:g}")
         self.paused = bool(g("start_paused"))
@@ -159,11 +160,12 @@ class BagPlayNode(Node):
 
     # ------------------------------------------------------------------ timing
     def bag_time_now(self) -> int:
-        """The bag time (ns) being played now."""
+        """The bag time (ns) being played now: it stands at the bag's end after the last message until a loop
+        starts again (a bag has no time after its end; a late restart on a busy machine must not show one)."""
         if self._t0_wall is None:
             return self.start_ns
         now = self._paused_since if self.paused else time.monotonic()
-        return self.start_ns + int((now - self._t0_wall) * self.rate * 1e9)
+        return min(self.start_ns + int((now - self._t0_wall) * self.rate * 1e9), self.end_ns)
 
     def _publish_clock(self):
         t = self.bag_time_now()
