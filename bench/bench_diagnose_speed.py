@@ -23,14 +23,6 @@ import time
 os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 
 
-def _without_times(o):
-    if isinstance(o, dict):
-        return {k: _without_times(v) for k, v in o.items() if k not in ("timing", "time_s", "refit_s", "source")}
-    if isinstance(o, list):
-        return [_without_times(v) for v in o]
-    return o
-
-
 def _first_difference(a, b, path="") -> str:
     """Where two documents first differ (a key path and the two values)."""
     if isinstance(a, dict) and isinstance(b, dict):
@@ -79,6 +71,8 @@ def _diagnose(bag: str, processes: int, out: str) -> tuple:
 
 
 def main(argv=None) -> int:
+    from uw_sil.fit.diagnose import without_times
+
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--bag", action="append", default=[])
     ap.add_argument("--repeats", type=int, default=1)
@@ -95,7 +89,7 @@ def main(argv=None) -> int:
                     load = os.getloadavg()[0]
                     dt, doc = _diagnose(bag, p, os.path.join(d, f"diag_{b}_{rep}_{p}.json"))
                     times[p].append(dt)
-                    docs[p] = _without_times(doc)
+                    docs[p] = without_times(doc)
                     steps = " ".join(f"{k.removesuffix('_s')} {v:.1f}" for k, v in doc["timing"].items()
                                      if k != "total_s")
                     print(f"{os.path.basename(bag)} processes {p}: {dt:.1f} s (load {load:.1f}); {steps}; verdict "

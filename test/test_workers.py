@@ -145,7 +145,7 @@ def test_a_diagnosis_is_the_same_with_one_process_or_two(tmp_path):
     times differ). Not bit for bit: the same refit in a process that computed other things before can differ
     in the 7th digit (measured on one of three 640x480 bags: θ 0.9065968 against 0.9065970)."""
     from uw_sil.bags.synth import synthesize_trial
-    from uw_sil.fit.diagnose import diagnose_bag
+    from uw_sil.fit.diagnose import diagnose_bag, without_times
     from uw_sil.sim.camera import CameraModel
 
     bag = tmp_path / "lamps.mcap"
@@ -155,20 +155,12 @@ def test_a_diagnosis_is_the_same_with_one_process_or_two(tmp_path):
 
     def doc(processes):
         d = diagnose_bag(bag, k=6, max_effects=1, effects_allowed=allowed, processes=processes).to_json()
-        return _without_times(d)
+        return without_times(d)
 
     one, two = doc(1), doc(2)
     assert _largest_difference(one, two) <= 1e-5, _largest_difference(one, two, where=True)
     assert [s["chosen"] for s in one["selection"]] == [s["chosen"] for s in two["selection"]]
     assert any(c.get("round") == 1 for c in two["candidates"])
-
-
-def _without_times(o):
-    if isinstance(o, dict):
-        return {k: _without_times(v) for k, v in o.items() if k not in ("timing", "time_s", "refit_s", "source")}
-    if isinstance(o, list):
-        return [_without_times(v) for v in o]
-    return o
 
 
 def _largest_difference(a, b, path="", where=False):

@@ -62,7 +62,7 @@ from .residuals import (LABEL_PANEL, ReducedFrame, base_sim, locate, load_frames
                         reduction_factor, residual_maps, split_frames)
 
 __all__ = ["SCHEMA_VERSION", "Diagnosis", "diagnose_frames", "diagnose_bag", "write_diagnosis_yaml",
-           "validate_diagnosis_json", "DiagnosisError"]
+           "validate_diagnosis_json", "without_times", "DiagnosisError"]
 
 SCHEMA_VERSION = 1
 
@@ -130,6 +130,20 @@ class Diagnosis:
                          f"{c['theta_heldout']:.4f} (Δ {c['delta_heldout']:+.4f}, margin {c.get('margin', 0):.4f})"
                          + (" accepted" if c.get("accepted") else ""))
         return lines
+
+
+#: Keys of the document that hold times (and where the recording was read): what differs between two runs
+#: that computed the same diagnosis.
+RUN_KEYS = ("timing", "time_s", "refit_s", "source")
+
+
+def without_times(doc):
+    """The diagnosis document (or a part of it) without :data:`RUN_KEYS`, to compare two runs' results."""
+    if isinstance(doc, dict):
+        return {k: without_times(v) for k, v in doc.items() if k not in RUN_KEYS}
+    if isinstance(doc, list):
+        return [without_times(v) for v in doc]
+    return doc
 
 
 def validate_diagnosis_json(d: dict) -> None:
