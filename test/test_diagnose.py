@@ -391,6 +391,32 @@ def test_a_residual_acceptance_is_declined_when_its_model_loses_more_theta(bags,
     assert strong["final"]["effects"] == ["camera_response"], strong["candidates"]
 
 
+def test_a_pose_correction_is_judged_on_the_pose_alone(bags, monkeypatch):
+    """The pose plug-in's held-out residual compares the current model with and without its pose correction,
+    so only the pose may move in its least-squares fit. Planted: a base fit whose attenuations are 20 % off
+    the least-squares optimum (θ's optimum and the residual's differ; on an own 640x480 control the refit of
+    the photometric parameters alone took 6 % of the held-out residual and a 0.3 mm "pose error" was accepted
+    on it). On the effect-free control the pose must not be accepted."""
+    import uw_sil.fit.diagnose as dg
+
+    real = dg.fit_model
+
+    def off(model, rframes, noise, x0, **kw):
+        fit = real(model, rframes, noise, x0, **kw)
+        fit.x = np.array(fit.x, float)
+        fit.x[:3] *= 1.2
+        return fit
+
+    monkeypatch.setattr(dg, "fit_model", off)
+    doc = dg.diagnose_bag(bags["control"], k=6, effects_allowed=["pose_error"], processes=1).to_json()
+    row = next(c for c in doc["candidates"] if c["effect"] == "pose_error")
+    st = row["heldout_statistic"]
+    assert st["improvement"] < st["margin"], st
+    assert not row["accepted"] and doc["verdict"] == [], row
+    moved = {k: v for k, v in row["params"].items() if not k.startswith("pose_error.")}
+    assert moved == pytest.approx(doc["base"]["params"]), "the pose refit moved the photometric parameters"
+
+
 def test_doubts_lower_confidence():
     """A fitted value on its box bound or outside deep-sea ranges is said, and costs confidence."""
     from uw_sil.fit.diagnose import _confidence, base_doubts

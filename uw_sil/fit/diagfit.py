@@ -381,6 +381,10 @@ class EffectModel:
     def names(self) -> tuple:
         return RGB_NAMES + tuple(f"{n}.{p}" for n in self.effects for p in self.free[n])
 
+    def free_index(self, effect: str) -> np.ndarray:
+        """Positions of ``effect``'s free parameters in the parameter vector."""
+        return np.array([i for i, n in enumerate(self.names) if n.startswith(effect + ".")], int)
+
     def bounds(self) -> tuple:
         return (np.concatenate([DEFAULT_RGB_BOUNDS[0], self._elo]), np.concatenate([DEFAULT_RGB_BOUNDS[1], self._ehi]))
 
@@ -430,13 +434,38 @@ def residual_energy(model, X) -> np.ndarray:
     return out
 
 
-def ls_fit(model: "EffectModel", x0, stride: int = 2, max_nfev: int = 12, interrupt=None) -> np.ndarray:
+class _Subspace:
+    """A model seen through some of its parameters (``idx``; the others stay at ``x``): what :func:`ls_fit`
+    needs of a model."""
+
+    def __init__(self, model, x, idx):
+        self.model, self.x, self.idx = model, x, idx
+        self.rframes = model.rframes
+
+    def bounds(self):
+        lo, hi = self.model.bounds()
+        return lo[self.idx], hi[self.idx]
+
+    def simulate(self, k, U):
+        X = np.repeat(self.x[None], len(U), axis=0)
+        X[:, self.idx] = U
+        return self.model.simulate(k, X)
+
+
+def ls_fit(model: "EffectModel", x0, stride: int = 2, max_nfev: int = 12, interrupt=None,
+           free: Optional[np.ndarray] = None) -> np.ndarray:
     """Least-squares fit (grey levels, every ``stride``-th pixel) of a candidate model to its frames, from x0;
-    ``interrupt`` is called before every evaluation (raises to stop)."""
+    ``interrupt`` is called before every evaluation (raises to stop); ``free``: indices of the parameters
+    fitted (default all; the others stay at x0)."""
     from scipy.optimize import least_squares
 
     lo, hi = model.bounds()
     x0 = np.clip(np.asarray(x0, float), lo + 1e-9 * (hi - lo), hi - 1e-9 * (hi - lo))
+    if free is not None:
+        idx = np.asarray(free, int)
+        x = x0.copy()
+        x[idx] = ls_fit(_Subspace(model, x0, idx), x0[idx], stride=stride, max_nfev=max_nfev, interrupt=interrupt)
+        return x
     reals = [rf.image[stride // 2::stride, stride // 2::stride] for rf in model.rframes]
     last = {}
 

@@ -72,7 +72,12 @@ class PoseErrorJudge(Judge):
         xs = [model.x0(current.base)] + [model.x0(current.base, {self.effect: pose_hint(motion, sg)})
                                          for sg in (1.0, -1.0)]
         e = residual_energy(model, np.stack(xs)).mean(axis=1)
-        x = ls_fit(model, xs[int(np.argmin(e))], stride=1, max_nfev=10, interrupt=job.interrupt)
+        # only the pose moves: the rest stays at the current model's θ optimum, which is the reference of the
+        # held-out residual below. (With everything free, the least-squares refit of the photometric
+        # parameters alone lowered an effect-free control's held-out residual by 6 %, and a 0.3 mm "pose
+        # error" was accepted on it.)
+        x = ls_fit(model, xs[int(np.argmin(e))], stride=1, max_nfev=10, interrupt=job.interrupt,
+                   free=model.free_index(self.effect))
         hmodel = model.like(rsel, seed=job.seed + 50)
         eh = residual_energy(hmodel, np.stack([hmodel.x0(current.base), x]))
         imp = (eh[0] - eh[1]) / np.maximum(eh[0], 1e-9)
