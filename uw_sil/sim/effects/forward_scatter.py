@@ -25,16 +25,17 @@ from .base import Effect, EffectParam
 SIGMA0 = 0.5            # px, finest precomputed blur
 
 
-def _blur_plane(x: np.ndarray, sigma: float) -> np.ndarray:
-    """Gaussian blur of a (H, W) float32 plane; large sigmas through a downsampled copy."""
+def _blur_plane(x: np.ndarray, sigma: float, out=None) -> np.ndarray:
+    """Gaussian blur of a (H, W) float32 plane; large sigmas through a downsampled copy. ``out``: a
+    C-contiguous (H, W) float32 plane to write into."""
     if sigma <= 3.0:
-        return cv2.GaussianBlur(x, (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
+        return cv2.GaussianBlur(x, (0, 0), sigma, dst=out, borderType=cv2.BORDER_REFLECT)
     h, w = x.shape
     f = int(sigma // 1.5)
     small = cv2.resize(x, (max(1, w // f), max(1, h // f)), interpolation=cv2.INTER_AREA)
     s = float(np.sqrt(max(sigma * sigma - 0.35 * f * f, 0.25 * f * f))) / f
     small = cv2.GaussianBlur(small, (0, 0), s, borderType=cv2.BORDER_REFLECT)
-    return cv2.resize(small, (w, h), interpolation=cv2.INTER_LINEAR)
+    return cv2.resize(small, (w, h), dst=out, interpolation=cv2.INTER_LINEAR)
 
 
 def range_for_blur(geom) -> np.ndarray:
@@ -83,12 +84,17 @@ class ForwardScatter(Effect):
         pos = self._pos(sigma)
         pos_t = self._pos(4 * sigma)
         top = int(np.ceil(max(pos.max(), pos_t.max() if tail > 0 else 0)))
-        blurred = np.zeros_like(D)
+        at = self._index(pos, top + 1)                       # the same for every channel
+        at_t = self._index(pos_t, top + 1) if tail > 0 else None
+        blurred = np.empty_like(D)
+        levels = np.empty((top + 1,) + D.shape[1:], D.dtype)
         for c in range(3):
-            levels = [D[c]] + [_blur_plane(D[c], SIGMA0 * 2 ** (k - 1)) for k in range(1, top + 1)]
-            acc = self._interp(levels, pos)
+            levels[0] = D[c]
+            for k in range(1, top + 1):
+                _blur_plane(D[c], SIGMA0 * 2 ** (k - 1), out=levels[k])
+            acc = self._interp(levels, at)
             if tail > 0:
-                acc = (1 - tail) * acc + tail * self._interp(levels, pos_t)
+                acc = (1 - tail) * acc + tail * self._interp(levels, at_t)
             blurred[c] = acc
         D += s[None] * (blurred - D)
 
@@ -101,15 +107,17 @@ class ForwardScatter(Effect):
         return np.where(lin < 1, lin, lg).astype(np.float32)
 
     @staticmethod
-    def _interp(levels, pos):
-        j = np.clip(np.floor(pos).astype(np.int32), 0, len(levels) - 1)
+    def _index(pos, n: int) -> tuple:
+        """Per pixel: the flat indices of the two levels (of ``n``) around a fractional level and the weight
+        of the upper one."""
+        j = np.clip(np.floor(pos).astype(np.intp), 0, n - 1)
         f = np.clip(pos - j, 0, 1).astype(np.float32)
-        out = np.zeros_like(levels[0])
-        for k in range(len(levels)):
-            sel = j == k
-            if not sel.any():
-                continue
-            lo = levels[k]
-            hi = levels[min(k + 1, len(levels) - 1)]
-            out = np.where(sel, lo + f * (hi - lo), out)
-        return out
+        flat = np.arange(j.size, dtype=np.intp).reshape(j.shape)
+        return j * j.size + flat, np.minimum(j + 1, n - 1) * j.size + flat, f
+
+    @staticmethod
+    def _interp(levels, at):
+        """Linear interpolation between the stacked blur levels (L, H, W) at the indices of :meth:`_index`."""
+        lo_i, hi_i, f = at
+        lo = levels.ravel()[lo_i]
+        return lo + f * (levels.ravel()[hi_i] - lo)
