@@ -222,6 +222,34 @@ def test_artificial_light_cache_returns_what_it_computes(frames, renderer):
     assert not np.array_equal(cached[0], cached[1 + len(x) - 1])        # the veil column moved the image
 
 
+def test_the_image_before_the_camera_noise_is_reused_bit_for_bit(frames, renderer):
+    """Candidates that differ only in the camera noise (the noise plug-in's fit) reuse the image computed
+    before it: a batch of noise parameter sets, with lamps, forward scatter and vignetting before the noise and
+    compression after it, equals each set evaluated alone by a fresh evaluator, and a change of the earlier
+    parameters is not served from the reuse."""
+    T, rr = frames["mid"]
+    m = UnderwaterModel(P, {"artificial_light": "strong", "forward_scatter": "strong", "vignetting": "strong",
+                            "sensor_noise": "strong", "compression": "strong"})
+    x = np.concatenate([P.as_vector(), m.effect_vector()])
+    names = m.effect_param_names()
+    X = np.repeat(x[None], 5, axis=0)
+    for j, (n, v) in enumerate([("shot", 0.1), ("read", 1.0), ("corr", 0.3), ("read", 4.0)], start=1):
+        X[j, 7 + names.index(f"sensor_noise.{n}")] = v
+    X = np.concatenate([X, X[:1]])
+    X[-1, 7 + names.index("artificial_light.power")] *= 0.5          # an earlier parameter: no reuse
+    pm = m.prepare(rr, renderer.camera, pose=T, seed=3)
+    computed = []
+    real_terms = pm._terms
+    pm._terms = lambda *a, **k: computed.append(1) or real_terms(*a, **k)
+    batch = pm(X[:, :7], X[:, 7:])
+    assert len(computed) == 2                       # the first set and the one with other lamps
+    for k in range(len(X)):
+        alone = m.prepare(rr, renderer.camera, pose=T, seed=3)(X[k, :7], X[k, 7:])
+        assert np.array_equal(batch[k], alone), k
+    assert not np.array_equal(batch[1], batch[2])
+    assert not np.array_equal(batch[0], batch[-1])
+
+
 def _hf_energy(img, mask):
     import cv2
     lap = cv2.Laplacian(img.mean(-1).astype(np.float32), cv2.CV_32F)

@@ -494,6 +494,9 @@ class PreparedModel:
             self.cover = None
         self._base_prep = None
         self._cache = {}
+        # the first random sensor effect (camera noise): the image before it is kept between calls
+        self._cut = next((k for k, e in enumerate(self.effects) if e.stage == "sensor" and e.random_per_frame), None)
+        self._before_cut = None
         self._scratch = None
         self.base_vector = model.params.as_vector()
         self.effect_vector = model.effect_vector()
@@ -572,6 +575,17 @@ class PreparedModel:
         return terms, vals, prep
 
     def _evaluate(self, base, effect_vector, seed) -> np.ndarray:
+        cut = self._cut
+        if cut is not None:
+            # everything before the first random sensor effect (the camera noise) is the same for candidates
+            # that differ only from there on (a noise fit): kept from the last call and reused, bit for bit
+            key = (np.asarray(base, float).tobytes(),
+                   np.asarray(effect_vector[:self.slices[cut].start], float).tobytes(), seed)
+            if self._before_cut is not None and self._before_cut[0] == key:
+                terms, I0 = self._before_cut[1:]
+                terms.I = I0.copy()
+                vals = [e.from_vector(effect_vector[s]) for e, s in zip(self.effects, self.slices)]
+                return self._sensor(terms, vals, seed, range(cut, len(self.effects)))
         terms, vals, prep = self._terms(base, effect_vector, seed)
         b = terms.b
         ip = prep.planes if terms.illum is None else prep.planes * terms.illum
@@ -593,11 +607,21 @@ class PreparedModel:
         if terms.veil is not None:
             I += terms.veil
         terms.I = I
-        for e, v in active:
-            if e.stage == "sensor":
+        if cut is None:
+            return self._sensor(terms, vals, seed, range(len(self.effects)))
+        self._sensor(terms, vals, seed, range(cut), last=False)
+        self._before_cut = (key, terms, terms.I.copy())
+        return self._sensor(terms, vals, seed, range(cut, len(self.effects)))
+
+    def _sensor(self, terms, vals, seed, which, last: bool = True) -> np.ndarray:
+        """The sensor-stage effects among ``which`` (effect indices) on ``terms.I``; ``last``: then the clip to
+        [0, 1] (not needed by the base model alone, which stays there by itself)."""
+        for k in which:
+            e, v = self.effects[k], vals[k]
+            if e.stage == "sensor" and not e.is_identity(v):
                 e.apply(terms, v, effect_rng(seed, e.name) if e.random_per_frame else None)
         I = terms.I
-        if active:                                   # the base model stays in [0, 1] by itself
+        if last and any(not e.is_identity(v) for e, v in zip(self.effects, vals)):
             np.clip(I, 0.0, 1.0, out=I)
         return I
 
