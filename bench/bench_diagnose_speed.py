@@ -1,17 +1,19 @@
-"""Diagnosis speed: a round's candidate refits in worker processes against the same diagnosis in one process,
-measured in the same run on the same bags, with the documents compared number for number.
+"""Diagnosis speed, measured in the same run on the same bags, with the documents compared number for number:
+a round's candidate refits in worker processes against the same diagnosis in one process, or (``--baseline
+DIR``) this code against a checkout of earlier code, both with ``--processes``.
 
-    .venv/bin/python bench/bench_diagnose_speed.py [--bag B ...] [--repeats 1] [--processes 2]
+    .venv/bin/python bench/bench_diagnose_speed.py [--bag B ...] [--repeats 1] [--processes 2] [--baseline DIR]
 
 Without ``--bag`` it writes an 8-frame 640x480 trial with the vehicle's lamps and a seafloor concealed (the
 project's own generator, seed 0) and diagnoses that. Each diagnosis is a fresh ``uw-sil diagnose --bag B --json J
---processes P`` (P = 1: the code before the worker processes, θ on the process's threads), one process and
-``--processes`` alternating which goes first; the machine's load (1-minute average) is printed next to every
-run. Per bag: the time of each step (base fit, evidence, every round, elimination,
-statistics) of both, and whether the two documents are the same apart from their times.
+--processes P`` (P = 1: the code before the worker processes, θ on the process's threads), run from an empty
+directory with ``PYTHONPATH`` on the code it measures; the two arms alternate which goes first, and the
+machine's load (1-minute average) is printed next to every run. Per bag: the time of each step (base fit,
+evidence, every round, elimination, statistics) of both, and whether the two documents are the same apart from
+their times.
 
-Last line: ``diagnose speed: one process <t> s, <n> processes <t> s (median over bags and repeats), ratio
-<r>x, identical <k>/<m>``.
+Last line: ``diagnose speed: <arm A> <t> s, <arm B> <t> s (median over bags and repeats), ratio <r>x,
+identical <k>/<m>``.
 """
 import argparse
 import os
@@ -57,14 +59,19 @@ def _trial(d: str) -> str:
     return bag
 
 
-def _diagnose(bag: str, processes: int, out: str) -> tuple:
-    """(wall time, document) of a fresh ``uw-sil diagnose``."""
+HERE = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def _diagnose(bag: str, processes: int, out: str, code: str = HERE) -> tuple:
+    """(wall time, document) of a fresh ``uw-sil diagnose`` of the checkout ``code``."""
     import json
     import subprocess
 
+    env = dict(os.environ, PYTHONPATH=os.path.abspath(code))
     t0 = time.perf_counter()
     subprocess.run([sys.executable, "-m", "uw_sil.cli", "diagnose", "--bag", bag, "--json", out,
-                    "--processes", str(processes)], check=True, stdout=subprocess.DEVNULL)
+                    "--processes", str(processes)], check=True, stdout=subprocess.DEVNULL, env=env,
+                   cwd=os.path.dirname(out))
     dt = time.perf_counter() - t0
     with open(out) as f:
         return dt, json.load(f)
@@ -77,33 +84,40 @@ def main(argv=None) -> int:
     ap.add_argument("--bag", action="append", default=[])
     ap.add_argument("--repeats", type=int, default=1)
     ap.add_argument("--processes", type=int, default=2)
+    ap.add_argument("--baseline", help="checkout of earlier code: compared with this code, both at --processes")
     args = ap.parse_args(argv)
+    if args.baseline:
+        arms = {"baseline": (args.processes, args.baseline), "this code": (args.processes, HERE)}
+    else:
+        arms = {"one process": (1, HERE), f"{args.processes} processes": (args.processes, HERE)}
+    (la, lb) = arms
     with tempfile.TemporaryDirectory(prefix="uw_sil-diagspeed-") as d:
         bags = args.bag or [_trial(d)]
-        times = {1: [], args.processes: []}
+        times = {a: [] for a in arms}
         same = 0
         for b, bag in enumerate(bags):
             for rep in range(args.repeats):
                 docs = {}
-                for p in ((1, args.processes) if (rep + b) % 2 == 0 else (args.processes, 1)):
+                for i, arm in enumerate((la, lb) if (rep + b) % 2 == 0 else (lb, la)):
                     load = os.getloadavg()[0]
-                    dt, doc = _diagnose(bag, p, os.path.join(d, f"diag_{b}_{rep}_{p}.json"))
-                    times[p].append(dt)
-                    docs[p] = without_times(doc)
+                    p, code = arms[arm]
+                    dt, doc = _diagnose(bag, p, os.path.join(d, f"diag_{b}_{rep}_{i}.json"), code)
+                    times[arm].append(dt)
+                    docs[arm] = without_times(doc)
                     steps = " ".join(f"{k.removesuffix('_s')} {v:.1f}" for k, v in doc["timing"].items()
                                      if k != "total_s")
-                    print(f"{os.path.basename(bag)} processes {p}: {dt:.1f} s (load {load:.1f}); {steps}; verdict "
+                    print(f"{os.path.basename(bag)} {arm}: {dt:.1f} s (load {load:.1f}); {steps}; verdict "
                           f"{[v['effect'] for v in doc['verdict']]}", flush=True)
-                ok = docs[1] == docs[args.processes]
+                ok = docs[la] == docs[lb]
                 same += ok
-                sel = [[s["chosen"] for s in docs[p]["selection"]] for p in (1, args.processes)]
+                sel = [[s["chosen"] for s in docs[a]["selection"]] for a in (la, lb)]
                 print(f"{os.path.basename(bag)}: documents " + ("identical" if ok else
-                      f"differ, first at {_first_difference(docs[1], docs[args.processes])}; selection "
+                      f"differ, first at {_first_difference(docs[la], docs[lb])}; selection "
                       f"{'the same' if sel[0] == sel[1] else 'DIFFERS'}"), flush=True)
-    t1, tn = statistics.median(times[1]), statistics.median(times[args.processes])
-    n = len(times[1])
-    print(f"diagnose speed: one process {t1:.1f} s, {args.processes} processes {tn:.1f} s (median of {n}), "
-          f"ratio {t1 / tn:.2f}x, identical {same}/{n}")
+    ta, tb = statistics.median(times[la]), statistics.median(times[lb])
+    n = len(times[la])
+    print(f"diagnose speed: {la} {ta:.1f} s, {lb} {tb:.1f} s (median of {n}), ratio {ta / tb:.2f}x, "
+          f"identical {same}/{n}")
     return 0 if same == n else 1
 
 
