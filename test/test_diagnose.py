@@ -417,6 +417,40 @@ def test_a_pose_correction_is_judged_on_the_pose_alone(bags, monkeypatch):
     assert moved == pytest.approx(doc["base"]["params"]), "the pose refit moved the photometric parameters"
 
 
+def test_a_pose_correction_survives_the_elimination_of_an_earlier_effect(bags, monkeypatch):
+    """A pose correction changes the frames every later fit sees, so the fits made before it are not compared
+    with the ones after. Planted (vignetting trial): camera response taken in round 1, the pose in round 2,
+    vignetting then joins; backward elimination drops camera response, and its refit of the model without it
+    is made to look worse on the fit frames than round 1's fit of vignetting alone (made before the
+    correction). That older fit, taken instead, lost the pose correction (a foreign forward-scatter trial
+    ended in a KeyError); the verdict must keep the pose and its values."""
+    from dataclasses import replace
+
+    import uw_sil.fit.judges as jd
+    import uw_sil.fit.judges.base as jb
+    from uw_sil.fit.diagnose import diagnose_bag
+
+    cr, pe = type(jd.JUDGES["camera_response"]), type(jd.JUDGES["pose_error"])
+    monkeypatch.setattr(cr, "accept", lambda self, r, current, margin, residual=None:
+                        (True, 1e3, "theta") if not current.effects and not current.absorbed else (False, 0.0, "theta"))
+    monkeypatch.setattr(cr, "plausibility", lambda self, values: [])
+    monkeypatch.setattr(pe, "accept", lambda self, r, current, margin, residual=None:
+                        (True, 1e3, "theta") if current.effects == ("camera_response",) else (False, 0.0, "theta"))
+    real_without = jb.refit_without
+
+    def worse(job, current, e, ls_nfev=None):
+        r = real_without(job, current, e, ls_nfev)
+        return None if r is None else replace(r, theta_fit=r.theta_fit - 1.0)
+
+    monkeypatch.setattr(jb, "refit_without", worse)
+    doc = diagnose_bag(bags["vignetting"], k=6, effects_allowed=["camera_response", "pose_error", "vignetting"],
+                       max_effects=3).to_json()
+    chosen = [s["chosen"] for s in doc["selection"]]
+    assert chosen[:3] == ["camera_response", "pose_error", "vignetting"] and "-camera_response" in chosen, chosen
+    assert {v["effect"] for v in doc["verdict"]} == {"pose_error", "vignetting"}, doc["verdict"]
+    assert any(k.startswith("pose_error.") for k in doc["final"]["params"]), doc["final"]["params"]
+
+
 def test_doubts_lower_confidence():
     """A fitted value on its box bound or outside deep-sea ranges is said, and costs confidence."""
     from uw_sil.fit.diagnose import _confidence, base_doubts

@@ -574,6 +574,9 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
             if judge.absorb:
                 job, current = judge.absorb_into(job, current, r)
                 current = current_ls(job, current, max_nfev=LS_BASE_NFEV)
+                # the fits so far saw the frames before the correction: not comparable with the ones after
+                # (backward elimination took a fit of the uncorrected frames, and with it lost the correction)
+                earlier.clear()
             else:
                 # the reference of the next round's residual evidence: the new model's least-squares fit polished
                 # with the base fit's least-squares budget (a candidate's fit must not win by a longer polish alone)
