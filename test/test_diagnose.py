@@ -451,6 +451,37 @@ def test_a_pose_correction_survives_the_elimination_of_an_earlier_effect(bags, m
     assert any(k.startswith("pose_error.") for k in doc["final"]["params"]), doc["final"]["params"]
 
 
+def test_an_effect_the_final_model_holds_neutral_is_not_named(bags, monkeypatch):
+    """The verdict names physics the final model contains: an accepted effect whose values in the final model
+    are its neutral ones (the model without it) is left out of the verdict and the final parameters, and the
+    selection says so. (Foreign strong-vignetting trial: backward elimination took over the forward selection's
+    fit of β_B≠β_D + vignetting, in which β_B≠β_D had stayed at its start, ratios 1.00; the verdict still named it
+    first.) Planted: camera response accepted in round 1 with its refit held at neutral, on the control."""
+    import uw_sil.fit.judges as jd
+    from uw_sil.fit.diagnose import diagnose_bag
+    from uw_sil.sim.effects import get_effect
+
+    cr = type(jd.JUDGES["camera_response"])
+    real = cr.refit
+
+    def neutral(self, job, current, x_starts=None):
+        r = real(self, job, current, x_starts)
+        r.params["effects"]["camera_response"] = get_effect("camera_response").defaults()
+        return r
+
+    monkeypatch.setattr(cr, "refit", neutral)
+    monkeypatch.setattr(cr, "accept", lambda self, r, current, margin, residual=None: (True, 1e3, "theta"))
+    monkeypatch.setattr(cr, "plausibility", lambda self, values: [])
+    said = []
+    doc = diagnose_bag(bags["control"], k=6, effects_allowed=["camera_response"], max_effects=1, processes=1,
+                       progress=said.append).to_json()
+    assert [s["chosen"] for s in doc["selection"]][0] == "camera_response"
+    assert doc["verdict"] == [] and doc["final"]["effects"] == [], doc["verdict"]
+    assert not [k for k in doc["final"]["params"] if k.startswith("camera_response.")]
+    assert doc["selection"][-1]["chosen"] == "-camera_response"
+    assert any("camera_response not named" in m for m in said), said
+
+
 def test_doubts_lower_confidence():
     """A fitted value on its box bound or outside deep-sea ranges is said, and costs confidence."""
     from uw_sil.fit.diagnose import _confidence, base_doubts

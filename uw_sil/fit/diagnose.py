@@ -624,8 +624,18 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
     timing["statistics_s"] = time.perf_counter() - t0
 
     # ---------------------------------------------------------------- the final model and the verdict
+    # an effect the final model holds at its neutral values is the model without it: it is not named (backward
+    # elimination may have taken over a fit in which the optimizer left it where it started)
+    neutral = [a for a in accepted if a["effect"] in current.values
+               and get_effect(a["effect"]).is_identity(current.values[a["effect"]])]
+    for a in neutral:
+        accepted.remove(a)
+        say(f"{a['effect']} not named: the final model holds it at its neutral values")
+        steps.append({"round": "final", "model": current.name, "theta_heldout": float(current.sel_pf.mean()),
+                      "residual_heldout": float(np.mean(current.ls_sel_E)), "theta_train": current.theta_fit,
+                      "tried": [a["effect"]], "chosen": f"-{a['effect']}", "time_s": 0.0})
     final_effects = [a["effect"] for a in accepted]
-    eff_values = {e: dict(v) for e, v in current.values.items()}
+    eff_values = {e: dict(v) for e, v in current.values.items() if e not in {a["effect"] for a in neutral}}
     eff_values.update({e: dict(v) for e, v in current.absorbed.items()})
     for a in accepted:
         if JUDGES[a["effect"]].kind == "statistic":
