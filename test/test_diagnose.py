@@ -313,7 +313,7 @@ def test_backward_elimination_drops_an_effect_a_later_one_explains(bags, monkeyp
         return real(self, r, current, margin, residual)
 
     monkeypatch.setattr(cls, "accept", planted)
-    monkeypatch.setattr(cls, "plausibility", lambda self, values: [])   # (chosen first even if its fit is stretched)
+    monkeypatch.setattr(cls, "plausibility", lambda self, values, flat=(): [])   # (chosen first even if its fit is stretched)
     doc = diagnose_bag(bags["vignetting"], k=6, effects_allowed=["artificial_light", "vignetting"]).to_json()
     chosen = [s["chosen"] for s in doc["selection"]]
     assert chosen[:2] == ["artificial_light", "vignetting"], doc["selection"]
@@ -342,8 +342,8 @@ def test_a_plausible_explanation_is_chosen_before_a_stretched_one(bags, monkeypa
         return (True, 0.01, "theta") if not current.effects else (ok, strength, crit)
 
     monkeypatch.setattr(lamp, "accept", weak)
-    monkeypatch.setattr(lamp, "plausibility", lambda self, values: [])       # (its weak fit may sit on a bound)
-    monkeypatch.setattr(vig, "plausibility", lambda self, values: ["planted doubt"])
+    monkeypatch.setattr(lamp, "plausibility", lambda self, values, flat=(): [])       # (its weak fit may sit on a bound)
+    monkeypatch.setattr(vig, "plausibility", lambda self, values, flat=(): ["planted doubt"])
     said = []
     doc = diagnose_bag(bags["vignetting"], k=6, effects_allowed=["artificial_light", "vignetting"], max_effects=1,
                        progress=said.append).to_json()
@@ -374,7 +374,7 @@ def test_a_residual_acceptance_is_declined_when_its_model_loses_more_theta(bags,
         return replace(fit, sel_pf=np.asarray(fit.sel_pf) - 0.05)
 
     monkeypatch.setattr(jb, "least_squares_model", losing_ls)
-    monkeypatch.setattr(cr, "plausibility", lambda self, values: [])
+    monkeypatch.setattr(cr, "plausibility", lambda self, values, flat=(): [])
     docs = {}
     for strength in (1.0, 1000.0):
         monkeypatch.setattr(cr, "accept", lambda self, r, current, margin, residual=None, s=strength:
@@ -433,7 +433,7 @@ def test_a_pose_correction_survives_the_elimination_of_an_earlier_effect(bags, m
     cr, pe = type(jd.JUDGES["camera_response"]), type(jd.JUDGES["pose_error"])
     monkeypatch.setattr(cr, "accept", lambda self, r, current, margin, residual=None:
                         (True, 1e3, "theta") if not current.effects and not current.absorbed else (False, 0.0, "theta"))
-    monkeypatch.setattr(cr, "plausibility", lambda self, values: [])
+    monkeypatch.setattr(cr, "plausibility", lambda self, values, flat=(): [])
     monkeypatch.setattr(pe, "accept", lambda self, r, current, margin, residual=None:
                         (True, 1e3, "theta") if current.effects == ("camera_response",) else (False, 0.0, "theta"))
     real_without = jb.refit_without
@@ -471,7 +471,7 @@ def test_an_effect_the_final_model_holds_neutral_is_not_named(bags, monkeypatch)
 
     monkeypatch.setattr(cr, "refit", neutral)
     monkeypatch.setattr(cr, "accept", lambda self, r, current, margin, residual=None: (True, 1e3, "theta"))
-    monkeypatch.setattr(cr, "plausibility", lambda self, values: [])
+    monkeypatch.setattr(cr, "plausibility", lambda self, values, flat=(): [])
     said = []
     doc = diagnose_bag(bags["control"], k=6, effects_allowed=["camera_response"], max_effects=1, processes=1,
                        progress=said.append).to_json()
@@ -500,6 +500,46 @@ def test_doubts_lower_confidence():
     assert _confidence(3.0, []) > _confidence(3.0, ["x"]) > _confidence(3.0, ["x", "y"])
     assert base_doubts({"a_r": 0.4, "a_g": 0.0004, "a_b": 0.1, "b_r": 0, "b_g": 0, "b_b": 0, "rho_f": 0.3})
     assert not base_doubts({"a_r": 0.4, "a_g": 0.1, "a_b": 0.1, "b_r": 0, "b_g": 0, "b_b": 0, "rho_f": 0.0})
+
+
+def test_a_bound_the_image_no_longer_depends_on_is_no_doubt(bags, monkeypatch):
+    """A parameter on its box edge is doubted (the fit wanted more) unless the data do not hold it there:
+    forward scatter's strength on its upper bound scatters nearly all the light at the trial's ranges
+    (1 - exp(-strength r) near 1), so pulling it a tenth of the box inside changes θ by less than the noise
+    margin and the box, not the fit, set the value (a foreign strong forward-scatter trial lost the verdict to
+    a plausible camera response for that doubt). Vignetting's k1 on its lower bound blackens the corners: θ
+    changes far beyond the margin inside the box, and the doubt stays."""
+    import uw_sil.fit.judges as jd
+    from uw_sil.fit.diagfit import EffectModel
+    from uw_sil.fit.diagnose import diagnose_bag
+
+    fs = jd.JUDGES["forward_scatter"]
+    real = type(fs).flat_bounds
+    seen = []
+
+    def spy(self, job, model, x, scale):
+        seen.append((job, model, np.array(x, float), scale))
+        return real(self, job, model, x, scale)
+
+    monkeypatch.setattr(type(fs), "flat_bounds", spy)
+    diagnose_bag(bags["forward_scatter"], k=6, effects_allowed=["forward_scatter"], max_effects=1, processes=1)
+    job, model, x, scale = seen[0]
+    assert 0 < scale < 0.1
+    sat = x.copy()
+    sat[model.names.index("forward_scatter.strength")] = 1.5
+    vals = model.params_of(sat)["effects"]["forward_scatter"]
+    assert any("strength" in d and "bound" in d for d in fs.plausibility(vals))
+    flat = real(fs, job, model, sat, scale)
+    assert flat == ("strength",)
+    assert not [d for d in fs.plausibility(vals, flat) if "bound" in d]
+    assert real(fs, job, model, sat, 0.0) == ()          # (any change of θ at all holds a bound)
+
+    vig = jd.JUDGES["vignetting"]
+    vmodel = EffectModel(job.reduced(job.fit_f), ("vignetting",), fog=job.fog, seed=job.seed)
+    k1 = vmodel.names.index("vignetting.k1")
+    xv = vmodel.x0(x[:7], {"vignetting": {"k1": vmodel.bounds()[0][k1]}})
+    assert vig.on_bounds(vmodel.params_of(xv)["effects"]["vignetting"]) == [("k1", -1)]
+    assert vig.flat_bounds(job, vmodel, xv, scale) == ()
 
 
 def test_blockiness_reads_the_quality_of_a_jpeg_round_trip():

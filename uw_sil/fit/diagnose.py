@@ -506,9 +506,10 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
                 rgain = residual_gain(current, r, 2 * len(cands), seed=seed)
                 ok, strength, crit = JUDGES[e].accept(r, current, margin, rgain)
                 latest[e] = float(np.mean(r.sel_pf - current.sel_pf)) if not ok else max(strength, 1e-6)
-                doubts = JUDGES[e].plausibility(r.params["effects"].get(e, {})) if ok else []
+                flat = JUDGES[e].flat_bounds(job, r.model, r.x, margin) if ok else ()
+                doubts = JUDGES[e].plausibility(r.params["effects"].get(e, {}), flat) if ok else []
                 rows.append({**_candidate_row(rnd, current, e, r, margin, ok, strength, crit, imp, rgain),
-                             "doubts": doubts})
+                             "doubts": doubts, **({"flat_bounds": list(flat)} if flat else {})})
                 # a physically plausible explanation first: a fit with its parameters on their bounds or outside
                 # deep-sea ranges is stretched to mimic something else (β_B/β_D = 6 taking the veil of lamps);
                 # then θ, the paper's criterion: the residual decides only where no candidate raised θ (it is the
@@ -646,7 +647,8 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
         e, r = a["effect"], a["refit"]
         judge = JUDGES[e]
         vals = eff_values[e]
-        doubts = judge.plausibility(vals)
+        flat = judge.flat_bounds(job, current.model, current.x, a["margin"]) if e in current.effects else ()
+        doubts = judge.plausibility(vals, flat)
         words = gain_words(a["before"], a["after"], r.statistic if judge.kind == "statistic" else None,
                            (a["residual_before"], a["residual_after"]) if a.get("criterion") == "residual" else None)
         text = judge.explain(vals, words, sigs.get(e))

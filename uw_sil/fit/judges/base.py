@@ -328,22 +328,60 @@ class Judge:
     def explain(self, values: dict, gain: str, sig) -> str:
         return gain
 
-    def plausibility(self, values: dict) -> list:
-        """Doubts about fitted values: refitted parameters on a bound of their box (the fit wanted more), and
-        the plug-in's physical ranges (:meth:`ranges`)."""
+    def on_bounds(self, values: dict) -> list:
+        """``(name, side)`` of the refitted parameters that sit on a bound of their box (side -1: the lower,
+        +1: the upper), physical limits (:attr:`physical_bounds`) and a box edge that is the default not
+        counted."""
         from ...sim.effects import get_effect
 
-        eff = get_effect(self.effect)
         out = []
-        for p in eff.params:
+        for p in get_effect(self.effect).params:
             if p.name not in self.free_params() or p.name not in values or p.name in self.physical_bounds:
                 continue
             v, span = values[p.name], p.hi - p.lo
-            if (v - p.lo < 0.01 * span and p.default - p.lo > 0.01 * span) or \
-                    (p.hi - v < 0.01 * span and p.hi - p.default > 0.01 * span):
-                out.append(f"{self.effect}.{p.name} = {v:.3g} sits on its bound [{p.lo:g}, {p.hi:g}]")
-        out += self.ranges(values)
+            if v - p.lo < 0.01 * span and p.default - p.lo > 0.01 * span:
+                out.append((p.name, -1))
+            elif p.hi - v < 0.01 * span and p.hi - p.default > 0.01 * span:
+                out.append((p.name, +1))
         return out
+
+    def plausibility(self, values: dict, flat: tuple = ()) -> list:
+        """Doubts about fitted values: refitted parameters on a bound of their box (the fit wanted more;
+        ``flat``: parameters whose bound the data do not hold them at, :meth:`flat_bounds`, not doubted), and
+        the plug-in's physical ranges (:meth:`ranges`)."""
+        from ...sim.effects import get_effect
+
+        box = {p.name: p for p in get_effect(self.effect).params}
+        out = [f"{self.effect}.{n} = {values[n]:.3g} sits on its bound [{box[n].lo:g}, {box[n].hi:g}]"
+               for n, _ in self.on_bounds(values) if n not in flat]
+        return out + self.ranges(values)
+
+    def flat_bounds(self, job: Job, model: Optional[EffectModel], x, scale: float) -> tuple:
+        """The parameters on a bound of their box (:meth:`on_bounds`) at which the data do not hold them:
+        pulled back inside by a tenth of the box, the model's θ on the fit frames changes by less than
+        ``scale`` (the held-out noise margin of the candidate), either way. Such a bound says nothing of a
+        stretched fit: the image no longer depends on the parameter there (forward scatter's strength once
+        nearly all the light at the scene's range is scattered, ``1 - exp(-strength r)`` near 1), so the box,
+        not the data, decided the value. (A θ that rises beyond ``scale`` inside the box: a fit stuck on
+        the edge, doubted as before.)"""
+        from ...sim.effects import get_effect
+
+        if model is None or x is None or self.effect not in model.effects:
+            return ()
+        x = np.asarray(x, float)
+        values = model.params_of(x)["effects"][self.effect]
+        edges = self.on_bounds(values)
+        if not edges:
+            return ()
+        box = {p.name: p for p in get_effect(self.effect).params}
+        names = list(model.names)
+        X = [x]
+        for n, side in edges:
+            xi = x.copy()
+            xi[names.index(f"{self.effect}.{n}")] -= side * 0.1 * (box[n].hi - box[n].lo)
+            X.append(xi)
+        th = job.frame_theta(model, job.fit_f, np.array(X)).mean(axis=1)
+        return tuple(n for (n, _), t in zip(edges, th[1:]) if abs(th[0] - t) < scale)
 
     def ranges(self, values: dict) -> list:
         """Values outside the ranges deep-sea physics allows (plug-ins override)."""
