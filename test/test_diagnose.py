@@ -503,12 +503,15 @@ def test_doubts_lower_confidence():
 
 
 def test_a_bound_the_image_no_longer_depends_on_is_no_doubt(bags, monkeypatch):
-    """A parameter on its box edge is doubted (the fit wanted more) unless the data do not hold it there:
-    forward scatter's strength on its upper bound scatters nearly all the light at the trial's ranges
+    """A parameter on its box edge is doubted (the fit wanted more) unless it has saturated there: forward
+    scatter's strength on its upper bound scatters nearly all the light at the trial's ranges
     (1 - exp(-strength r) near 1), so pulling it a tenth of the box inside changes θ by less than the noise
-    margin and the box, not the fit, set the value (a foreign strong forward-scatter trial lost the verdict to
-    a plausible camera response for that doubt). Vignetting's k1 on its lower bound blackens the corners: θ
-    changes far beyond the margin inside the box, and the doubt stays."""
+    margin, while at the other end of its box θ is far off: the box, not the fit, set the value (a foreign strong
+    forward-scatter trial lost the verdict to a plausible camera response for that doubt). Vignetting's k1 on
+    its lower bound blackens the corners: θ changes far beyond the margin inside the box, and the doubt stays.
+    A parameter the image does not depend on anywhere (here: the width of a blur that is switched off) is not
+    determined by the data, and its bound stays doubted too (a faint seafloor's albedo on its bound was
+    otherwise no doubt, and the seafloor outranked the lamps of a foreign lamp trial)."""
     import uw_sil.fit.judges as jd
     from uw_sil.fit.diagfit import EffectModel
     from uw_sil.fit.diagnose import diagnose_bag
@@ -533,6 +536,11 @@ def test_a_bound_the_image_no_longer_depends_on_is_no_doubt(bags, monkeypatch):
     assert flat == ("strength",)
     assert not [d for d in fs.plausibility(vals, flat) if "bound" in d]
     assert real(fs, job, model, sat, 0.0) == ()          # (any change of θ at all holds a bound)
+    off = sat.copy()
+    off[model.names.index("forward_scatter.strength")] = 0.0
+    off[model.names.index("forward_scatter.width")] = 40.0
+    assert fs.on_bounds(model.params_of(off)["effects"]["forward_scatter"]) == [("width", 1)]
+    assert real(fs, job, model, off, scale) == ()
 
     vig = jd.JUDGES["vignetting"]
     vmodel = EffectModel(job.reduced(job.fit_f), ("vignetting",), fog=job.fog, seed=job.seed)

@@ -357,13 +357,14 @@ class Judge:
         return out + self.ranges(values)
 
     def flat_bounds(self, job: Job, model: Optional[EffectModel], x, scale: float) -> tuple:
-        """The parameters on a bound of their box (:meth:`on_bounds`) at which the data do not hold them:
-        pulled back inside by a tenth of the box, the model's θ on the fit frames changes by less than
-        ``scale`` (the held-out noise margin of the candidate), either way. Such a bound says nothing of a
-        stretched fit: the image no longer depends on the parameter there (forward scatter's strength once
-        nearly all the light at the scene's range is scattered, ``1 - exp(-strength r)`` near 1), so the box,
-        not the data, decided the value. (A θ that rises beyond ``scale`` inside the box: a fit stuck on
-        the edge, doubted as before.)"""
+        """The parameters on a bound of their box (:meth:`on_bounds`) that have *saturated* there: the image
+        depends on them (set to the other end of their box, the model's θ on the fit frames changes by more
+        than ``scale``, the held-out noise margin of the candidate), but no longer near the bound (pulled a
+        tenth of the box back inside, θ changes by less than ``scale``, either way). Such a bound says nothing of a
+        stretched fit: beyond it the image would not change either (forward scatter's strength once nearly
+        all the light at the scene's range is scattered, ``1 - exp(-strength r)`` near 1), so the box, not
+        the data, set the value. A parameter θ hardly depends on anywhere in its box (a faint seafloor's
+        albedo) is not determined by the data at all: its bound stays doubted."""
         from ...sim.effects import get_effect
 
         if model is None or x is None or self.effect not in model.effects:
@@ -377,11 +378,14 @@ class Judge:
         names = list(model.names)
         X = [x]
         for n, side in edges:
-            xi = x.copy()
-            xi[names.index(f"{self.effect}.{n}")] -= side * 0.1 * (box[n].hi - box[n].lo)
-            X.append(xi)
+            i, p = names.index(f"{self.effect}.{n}"), box[n]
+            pulled, far = x.copy(), x.copy()
+            pulled[i] -= side * 0.1 * (p.hi - p.lo)
+            far[i] = p.lo if side > 0 else p.hi
+            X += [pulled, far]
         th = job.frame_theta(model, job.fit_f, np.array(X)).mean(axis=1)
-        return tuple(n for (n, _), t in zip(edges, th[1:]) if abs(th[0] - t) < scale)
+        return tuple(n for k, (n, _) in enumerate(edges)
+                     if abs(th[0] - th[1 + 2 * k]) < scale < abs(th[0] - th[2 + 2 * k]))
 
     def ranges(self, values: dict) -> list:
         """Values outside the ranges deep-sea physics allows (plug-ins override)."""
