@@ -506,12 +506,14 @@ def test_a_bound_the_image_no_longer_depends_on_is_no_doubt(bags, monkeypatch):
     """A parameter on its box edge is doubted (the fit wanted more) unless it has saturated there: forward
     scatter's strength on its upper bound scatters nearly all the light at the trial's ranges
     (1 - exp(-strength r) near 1), so pulling it a tenth of the box inside changes θ by less than the noise
-    margin, while at the other end of its box θ is far off: the box, not the fit, set the value (a foreign strong
-    forward-scatter trial lost the verdict to a plausible camera response for that doubt). Vignetting's k1 on
-    its lower bound blackens the corners: θ changes far beyond the margin inside the box, and the doubt stays.
-    A parameter the image does not depend on anywhere (here: the width of a blur that is switched off) is not
-    determined by the data, and its bound stays doubted too (a faint seafloor's albedo on its bound was
-    otherwise no doubt, and the seafloor outranked the lamps of a foreign lamp trial)."""
+    margin, while at the other end of its box θ is far off: the box, not the fit, set the value (a foreign
+    strong forward-scatter trial lost the verdict to a plausible camera response for that doubt). Where θ
+    changes by less than the margin over the whole box, the data do not determine it, and it stays doubted
+    (a faint seafloor's albedo). A parameter
+    whose effect does not saturate by its form (the blur's width; a lamp's tint) stays doubted whatever θ
+    does near its bound (a lamp tint on its bound changed θ by 5 % of the lamps' gain over a tenth of its box:
+    without the declaration the lamps, fitted to a foreign recording without any, took its camera response's
+    place). Vignetting's k1 on its lower bound blackens the corners, and its doubt stays."""
     import uw_sil.fit.judges as jd
     from uw_sil.fit.diagfit import EffectModel
     from uw_sil.fit.diagnose import diagnose_bag
@@ -528,19 +530,27 @@ def test_a_bound_the_image_no_longer_depends_on_is_no_doubt(bags, monkeypatch):
     diagnose_bag(bags["forward_scatter"], k=6, effects_allowed=["forward_scatter"], max_effects=1, processes=1)
     job, model, x, scale = seen[0]
     assert 0 < scale < 0.1
+    i_s, i_w = model.names.index("forward_scatter.strength"), model.names.index("forward_scatter.width")
     sat = x.copy()
-    sat[model.names.index("forward_scatter.strength")] = 1.5
+    sat[i_s] = 1.5
     vals = model.params_of(sat)["effects"]["forward_scatter"]
     assert any("strength" in d and "bound" in d for d in fs.plausibility(vals))
     flat = real(fs, job, model, sat, scale)
     assert flat == ("strength",)
     assert not [d for d in fs.plausibility(vals, flat) if "bound" in d]
     assert real(fs, job, model, sat, 0.0) == ()          # (any change of θ at all holds a bound)
-    off = sat.copy()
-    off[model.names.index("forward_scatter.strength")] = 0.0
-    off[model.names.index("forward_scatter.width")] = 40.0
-    assert fs.on_bounds(model.params_of(off)["effects"]["forward_scatter"]) == [("width", 1)]
-    assert real(fs, job, model, off, scale) == ()
+    assert real(fs, job, model, sat, 1.0) == ()          # (θ must depend on it somewhere in its box)
+
+    # the width on its upper bound: pick a scale at which the θ test alone would call it saturated
+    wide = x.copy()
+    wide[i_w] = 40.0
+    pulled, far = wide.copy(), wide.copy()
+    pulled[i_w], far[i_w] = 40.0 - 3.95, 0.5
+    th = job.frame_theta(model, job.fit_f, np.array([wide, pulled, far])).mean(axis=1)
+    lenient = 0.5 * (abs(th[0] - th[1]) + abs(th[0] - th[2]))
+    assert abs(th[0] - th[1]) < lenient < abs(th[0] - th[2])
+    assert fs.on_bounds(model.params_of(wide)["effects"]["forward_scatter"]) == [("width", 1)]
+    assert real(fs, job, model, wide, lenient) == ()
 
     vig = jd.JUDGES["vignetting"]
     vmodel = EffectModel(job.reduced(job.fit_f), ("vignetting",), fog=job.fog, seed=job.seed)

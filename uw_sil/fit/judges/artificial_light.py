@@ -22,6 +22,9 @@ class ArtificialLightJudge(Judge):
     sigma = 0.12
     # no uniform light at all (lamps alone: the deep sea), one lamp only, a symmetric pair
     physical_bounds = ("fill", "balance")
+    # a super-Gaussian beam tends to a top-hat as its exponent grows; a beam far wider than the view lights it
+    # evenly
+    saturates = {"shape": +1, "half_angle": +1}
     # far-apart rigs tried as least-squares starts (a symmetric toed-in pair; one strong lamp to one side;
     # lamps as the only light): least squares from each, and θ picks
     alt_starts = ({"offset_x": 0.5, "offset_y": -0.1, "toe_in": 0.2, "half_angle": 0.45, "balance": 0.5, "fill": 0.2},

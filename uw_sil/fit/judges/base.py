@@ -246,6 +246,9 @@ class Judge:
     physical_bounds : tuple
         Parameters whose bounds are physical limits, not a fitter's box (a share of 0 or 1): a fitted value
         there is no reason for doubt.
+    saturates : dict
+        Parameters whose effect saturates towards one end of their box, by the effect's form (``+1``: the upper
+        end, ``-1``: the lower): there a bound need not mean a stretched fit (:meth:`flat_bounds`).
     cost : float
         Time of a first-round refit, seconds on a 640x480 bag (measured; it only orders the refits of a round
         across the worker processes, costliest first).
@@ -261,6 +264,7 @@ class Judge:
     least_squares: bool = True
     absorb: bool = False
     physical_bounds: tuple = ()
+    saturates: dict = {}
     cost: float = 3.0
     # the effect is a smooth change of brightness or colour (no edges of its own), which θ barely sees in dark,
     # noisy frames: the held-out residual may accept it too. Not for blur, geometry or pose, whose edges θ
@@ -357,21 +361,25 @@ class Judge:
         return out + self.ranges(values)
 
     def flat_bounds(self, job: Job, model: Optional[EffectModel], x, scale: float) -> tuple:
-        """The parameters on a bound of their box (:meth:`on_bounds`) that have *saturated* there: the image
-        depends on them (set to the other end of their box, the model's θ on the fit frames changes by more
-        than ``scale``, the held-out noise margin of the candidate), but no longer near the bound (pulled a
-        tenth of the box back inside, θ changes by less than ``scale``, either way). Such a bound says nothing of a
-        stretched fit: beyond it the image would not change either (forward scatter's strength once nearly
-        all the light at the scene's range is scattered, ``1 - exp(-strength r)`` near 1), so the box, not
-        the data, set the value. A parameter θ hardly depends on anywhere in its box (a faint seafloor's
-        albedo) is not determined by the data at all: its bound stays doubted."""
+        """The parameters on a bound of their box (:meth:`on_bounds`) that have *saturated* there: the effect's
+        form saturates towards that end (:attr:`saturates`: forward scatter's strength once nearly all the
+        light at the scene's range is scattered, ``1 - exp(-strength r)`` near 1), the image depends on the
+        parameter (set to the other end of its box, the model's θ on the fit frames changes by more than
+        ``scale``, the held-out noise margin of the candidate), but no longer near the bound (pulled a tenth of
+        the box back inside, θ changes by less than ``scale``, either way). Such a bound says nothing of a
+        stretched fit: beyond it the image would not change either, so the box, not the data, set the value.
+        A parameter that acts linearly (a colour gain, a lamp's power) is doubted on its bound whatever θ
+        does near it: measured, a lamp tint on its bound changed θ by only 5 % of the lamps' gain over a
+        tenth of its box, and the lamps, fitted to a recording without any, took the place of its camera
+        response. A parameter θ hardly depends on anywhere in its box is not determined by the data at all:
+        its bound stays doubted too."""
         from ...sim.effects import get_effect
 
         if model is None or x is None or self.effect not in model.effects:
             return ()
         x = np.asarray(x, float)
         values = model.params_of(x)["effects"][self.effect]
-        edges = self.on_bounds(values)
+        edges = [(n, side) for n, side in self.on_bounds(values) if self.saturates.get(n) == side]
         if not edges:
             return ()
         box = {p.name: p for p in get_effect(self.effect).params}

@@ -12,6 +12,7 @@ class ForwardScatterJudge(Judge):
     effect = "forward_scatter"
     free = ("strength", "width", "tail")
     physical_bounds = ("tail",)        # a share of 0 or 1
+    saturates = {"strength": +1}       # the scattered share 1 - exp(-strength r) tends to 1
     res = "high"
     cost = 10.0
 

@@ -8,6 +8,7 @@ class UnmodeledGeometryJudge(Judge):
     effect = "unmodeled_geometry"
     free = ("floor_y", "tilt", "albedo", "contrast")
     physical_bounds = ("contrast",)        # a share of 0 or 1
+    saturates = {"floor_y": -1}            # a floor far below the panel leaves the view
     res = "low"
     cost = 5.0
     sigma = 0.12
