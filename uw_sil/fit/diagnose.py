@@ -37,7 +37,8 @@ JSON schema (``schema_version`` 1)::
     {"schema_version": 1,
      "verdict":    [{"effect", "confidence", "explanation", "params", "doubts"}, ...],   # [] = none; best first
      "candidates": [{"effect", "theta_train", "theta_heldout", "delta_heldout", "params",
-                     "round", "model", "margin", "accepted", ...}, ...],                  # every refit
+                     "round", "model", "margin", "accepted", "doubts", ...}, ...],        # every refit
+                                                    # ("flat_bounds": parameters saturated on their bound)
      "selection":  [{"round", "model", "theta_heldout", "tried", "chosen", "time_s"}, ...],
      "base":       {"theta_train", "theta_heldout", "params", "doubts"},
      "final":      {"theta_heldout", "effects", "params", "statistics"},

@@ -351,8 +351,8 @@ class Judge:
 
     def plausibility(self, values: dict, flat: tuple = ()) -> list:
         """Doubts about fitted values: refitted parameters on a bound of their box (the fit wanted more;
-        ``flat``: parameters whose bound the data do not hold them at, :meth:`flat_bounds`, not doubted), and
-        the plug-in's physical ranges (:meth:`ranges`)."""
+        ``flat``: parameters that have saturated there, :meth:`flat_bounds`, not doubted), and the plug-in's
+        physical ranges (:meth:`ranges`)."""
         from ...sim.effects import get_effect
 
         box = {p.name: p for p in get_effect(self.effect).params}
