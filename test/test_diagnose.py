@@ -509,11 +509,10 @@ def test_a_bound_the_image_no_longer_depends_on_is_no_doubt(bags, monkeypatch):
     margin, while at the other end of its box θ is far off: the box, not the fit, set the value (a foreign
     strong forward-scatter trial lost the verdict to a plausible camera response for that doubt). Where θ
     changes by less than the margin over the whole box, the data do not determine it, and it stays doubted
-    (a faint seafloor's albedo). A parameter
-    whose effect does not saturate by its form (the blur's width; a lamp's tint) stays doubted whatever θ
-    does near its bound (a lamp tint on its bound changed θ by 5 % of the lamps' gain over a tenth of its box:
-    without the declaration the lamps, fitted to a foreign recording without any, took its camera response's
-    place). Vignetting's k1 on its lower bound blackens the corners, and its doubt stays."""
+    (a faint seafloor's albedo). A parameter whose effect does not saturate by its form (the blur's width;
+    a lamp's tint; vignetting's k1) stays doubted whatever θ does near its bound (a lamp tint on its bound
+    changed θ by 5 % of the lamps' gain over a tenth of its box: without the declaration the lamps, fitted to
+    a foreign recording without any, took its camera response's place)."""
     import uw_sil.fit.judges as jd
     from uw_sil.fit.diagfit import EffectModel
     from uw_sil.fit.diagnose import diagnose_bag
@@ -542,10 +541,13 @@ def test_a_bound_the_image_no_longer_depends_on_is_no_doubt(bags, monkeypatch):
     assert real(fs, job, model, sat, 1.0) == ()          # (θ must depend on it somewhere in its box)
 
     # the width on its upper bound: pick a scale at which the θ test alone would call it saturated
+    from uw_sil.sim.effects import get_effect
+
+    box = next(p for p in get_effect("forward_scatter").params if p.name == "width")
     wide = x.copy()
-    wide[i_w] = 40.0
+    wide[i_w] = box.hi
     pulled, far = wide.copy(), wide.copy()
-    pulled[i_w], far[i_w] = 40.0 - 3.95, 0.5
+    pulled[i_w], far[i_w] = box.hi - 0.1 * (box.hi - box.lo), box.lo
     th = job.frame_theta(model, job.fit_f, np.array([wide, pulled, far])).mean(axis=1)
     lenient = 0.5 * (abs(th[0] - th[1]) + abs(th[0] - th[2]))
     assert abs(th[0] - th[1]) < lenient < abs(th[0] - th[2])
