@@ -78,6 +78,11 @@ class ReducedFrame:
     part_ids : (h, w) uint16, part of the block's centre pixel
     obj : (h, w) bool, blocks entirely on the panel and not on a part boundary (no mixed pixels)
     water : (h, w) bool, blocks with no model pixel at least ``margin`` blocks away from the model
+    normals : (h, w, 3) float32, the full-resolution surface normals averaged over the block's model pixels
+        (not renormalized: a Lambert cosine ``n . l`` is linear in ``n``, so the mean normal gives the block's
+        mean cosine; normals taken from the averaged depth turned the sides of knobs and levers at 1/8 of
+        the resolution, and the lamp model's residual on the nearest frame of a lamp-lit dive with the true
+        rig was 0.66 instead of 0.12 grey levels²); None: from the reduced depth
     """
 
     frame: DiagFrame
@@ -92,6 +97,7 @@ class ReducedFrame:
     obj: np.ndarray
     water: np.ndarray
     camera: object = None
+    normals: Optional[np.ndarray] = None
     extra: dict = field(default_factory=dict)    # what is computed once per frame (θ's reference), a cache
 
     def __getstate__(self):
@@ -151,9 +157,15 @@ def reduce_frame(frame: DiagFrame, factor: int, water_margin: int = 2) -> Reduce
     lab_min = rr.labels[:h * f, :w * f].reshape(h, f, w, f).min(axis=(1, 3))
     obj = (cover >= 1.0) & (pmax == pmin) & (lab_min == LABEL_PANEL)
     water = ~dilate(cover > 0, water_margin)
+    from ..sim.model import Geometry
+
+    n_full = Geometry.from_render(rr, frame.camera, frame.pose).normals
+    normals = box_down(np.where(hit[..., None], n_full, 0.0), f) / safe[..., None]
+    normals[none] = 0.0
     return ReducedFrame(frame, f, box_down(frame.image, f), rgb.astype(np.float32), cover, rng.astype(np.float32),
                         dep.astype(np.float32), labels, parts_c.astype(np.uint16), obj, water,
-                        camera=frame.camera.scaled(1.0 / f) if f > 1 else frame.camera)
+                        camera=frame.camera.scaled(1.0 / f) if f > 1 else frame.camera,
+                        normals=normals.astype(np.float32))
 
 
 def base_sim(rf: ReducedFrame, params, fog: str = "exp2") -> np.ndarray:
