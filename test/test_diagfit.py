@@ -42,8 +42,11 @@ def test_least_squares_is_not_pulled_by_a_few_wrong_pixels():
     assert abs(plain[0] - truth[0]) * 255 > 1.0            # the outliers do pull plain least squares
     x = ls_fit(model, np.array([0.3, 0.2]), stride=1, max_nfev=50)
     assert abs(x[0] - truth[0]) * 255 < 0.1 and abs(x[1] - truth[1]) * 255 < 0.2
-    # the energy the held-out evidence compares is the same loss: lower at the robust fit than at plain's
-    assert residual_energy(model, x[None])[0, 0] < residual_energy(model, plain[None])[0, 0]
+    # the loss it minimizes is lower there than at plain least squares' optimum, and the plain squares the
+    # held-out evidence compares are higher (they are plain least squares' own optimum)
+    r = [model.simulate(0, v)[0] * 255 - image for v in (x, plain)]
+    assert robust_energy(r[0]) < robust_energy(r[1])
+    assert residual_energy(model, x[None])[0, 0] > residual_energy(model, plain[None])[0, 0]
 
 
 def test_robust_energy_is_the_squared_residual_below_its_scale():
@@ -96,3 +99,26 @@ def test_reduced_lamp_shading_is_the_block_mean_of_the_full_resolution_one(near_
     # image is not the clipped block mean)
     e_new, e_old = err(rf), err(replace(rf, normals=None))
     assert e_new < 2.0 and e_new < 0.25 * e_old, (e_new, e_old)
+
+
+def test_a_pose_correction_below_a_quarter_pixel_is_not_named():
+    """Warping the geometry by a fraction of a pixel blurs it (bilinear resampling): on a blurred recording
+    such a "correction" lowers the residual without any pose error, so it must move the image measurably."""
+    from types import SimpleNamespace
+
+    from uw_sil.fit.judges.pose_error import MIN_SHIFT_PX, PoseErrorJudge, image_shift
+    from uw_sil.sim.camera import CameraModel
+
+    cam = CameraModel.from_fov(160, 120)
+    depth = np.full((120, 160), 1.0, np.float32)
+    frame = SimpleNamespace(render=SimpleNamespace(depth=depth, range=depth), camera=cam)
+    assert np.isclose(image_shift([frame], {"tx": 1.0 / cam.fx}), 1.0, rtol=1e-3)    # 1 px at 1 m
+    assert image_shift([frame], {}) < 1e-9
+    judge = PoseErrorJudge()
+    current = SimpleNamespace(sel_pf=np.zeros(4))
+
+    def refit(shift):
+        return SimpleNamespace(sel_pf=np.zeros(4), statistic={"improvement": 0.08, "margin": 0.02, "shift_px": shift})
+
+    assert judge.accept(refit(0.4 * MIN_SHIFT_PX), current, 0.003)[0] is False
+    assert judge.accept(refit(4 * MIN_SHIFT_PX), current, 0.003)[0] is True

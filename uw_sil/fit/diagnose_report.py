@@ -181,7 +181,7 @@ def heldout_figure(diag):
     ax.set_xticklabels(labels, rotation=20, fontsize=7, ha="right")
     ax.set_title("held-out θ along the selection (green: final model)", fontsize=9)
     ax.legend(fontsize=7)
-    # the other held-out criterion: the least-squares fits' mean robust squared residual, pooled over the frames
+    # the other held-out criterion: the least-squares fits' mean squared residual, pooled over the frames
     ax = axes[2]
     E = [float(np.mean(fits[n]["held_E"])) if fits[n].get("held_E") is not None else np.nan
          for n in ["base"] + names]

@@ -12,15 +12,15 @@ Two kinds of held-out criterion:
                the model without it by more than the noise margin (:func:`margin_for`), or when the
                held-out *residual* evidence does (smooth photometric effects only,
                ``residual_evidence``): the least-squares fit of the model with the effect lowers
-               the held-out frames' mean robust squared residual (a Cauchy loss,
-               :func:`uw_sil.fit.diagfit.robust_energy`), frame by frame, relative to the least-squares
+               the held-out frames' mean squared residual (the fits themselves use a robust loss,
+               :data:`uw_sil.fit.diagfit.ROBUST_SCALE`), frame by frame, relative to the least-squares
                fit of the model without it, pooled over the frames, by more than its own margin
                (:func:`residual_gain`).
                Both are tried for every candidate (the margins are corrected for two tests each). θ, the
                paper's similarity, is built to rank simulations that look alike; it is nearly blind to a
                smooth change of brightness where the recording is dark and noisy (the deep sea lit by the
                vehicle's lamps: θ 0.74-0.81 for any model there), where the residual is the likelihood of
-               the recording under heavy-tailed noise and sees it.
+               the recording under Gaussian noise and sees it.
 ``statistic``  the effect draws new random numbers in every frame (particles, temporal noise): a pixel-wise
                θ cannot rise for them, since simulated particles and noise fall elsewhere than the recorded
                ones; accepted when a held-out *statistic* (speck density, noise level and correlation) moves
@@ -45,7 +45,7 @@ __all__ = ["Job", "Current", "Refit", "Judge", "theta_refit", "margin_for", "boo
 
 #: Smallest held-out θ gain accepted, whatever the bootstrap says (the spread of four frames can be tiny).
 MIN_MARGIN = 0.003
-#: Smallest mean relative reduction of the held-out (robust) mean squared residual accepted (2 %: half the energy
+#: Smallest mean relative reduction of the held-out mean squared residual accepted (2 %: half the energy
 #: change of a 1 % change of the residual's scale, four times its run-to-run spread between least-squares
 #: fits from different starts measured on effect-free controls; the bootstrap over four frames can be tiny).
 MIN_RESIDUAL_MARGIN = 0.02
@@ -76,7 +76,7 @@ def margin_for(gain_pf, m: int = 1, seed: int = 0, floor: float = MIN_MARGIN) ->
 
 def residual_gain(current: "Current", r: "Refit", m: int = 1, seed: int = 0) -> Optional[tuple]:
     """``(gain, margin)`` of the held-out residual: the relative reduction of the mean squared residual pooled
-    over the held-out frames, ``1 - sum E_r / sum E_current`` (a heavy-tailed likelihood with one noise level:
+    over the held-out frames, ``1 - sum E_r / sum E_current`` (the Gaussian likelihood with one noise level:
     a dark far frame, whose residual is tiny, weighs as little as it tells), and its margin: ``z(m)``
     bootstrap standard errors (frames resampled) and at least :data:`MIN_RESIDUAL_MARGIN`. None without a
     least-squares fit."""
