@@ -29,30 +29,12 @@ from ..sim.params import DEFAULT_RGB_BOUNDS, RGB_NAMES
 from .residuals import LABEL_PANEL, ReducedFrame, base_sim
 
 __all__ = ["BaseModel", "EffectModel", "FrameObjective", "ModelFit", "fit_model", "ls_fit", "noise_sigmas",
-           "BASE_SIGMA0", "ROBUST_SCALE", "robust_energy", "residual_energy"]
+           "BASE_SIGMA0"]
 
 
 #: Initial CMA-ES steps of the base parameters from a least-squares start (fraction of each range): small, and a
 #: quarter of it for the background, which the water fixes (cf. the backward fit's measured defaults).
 BASE_SIGMA0 = np.array([0.02, 0.02, 0.02, 0.005, 0.005, 0.005, 0.02])
-
-#: Scale (grey levels) of the Cauchy (Lorentzian) loss of the least-squares fits (:func:`robust_energy`). The
-#: least-squares fits run on frames about 80 px wide, whose block means carry a
-#: fraction of a grey level of camera noise; residuals of several grey levels there are not noise but places
-#: where the reduced geometry is wrong (silhouettes, the normals of small parts seen at 1/8 of the resolution)
-#: or things no smooth model holds (particles, specks). Squared, those few pixels outweighed the rest: on the
-#: demo's lamp-lit dive the plain least-squares fit ended at a lamp rig 0.2 m from the camera with half the veil
-#: (θ 0.950 on the fit frames) and lowered the residual below that of the true rig (θ 0.965); with this loss it
-#: ends at the true rig (0.33 m, θ 0.964). Below the scale the loss is the squared residual. The held-out
-#: residual evidence stays plain squares (:func:`residual_energy`).
-ROBUST_SCALE = 3.0
-
-
-def robust_energy(r, scale: float = ROBUST_SCALE, axis=None):
-    """Mean Cauchy loss ``s² ln(1 + (r/s)²)`` of residuals ``r`` (grey levels): grey levels², the mean squared
-    residual where residuals are well below ``s``, growing only logarithmically beyond it."""
-    r = np.asarray(r, float)
-    return (scale * scale * np.log1p((r / scale) ** 2)).mean(axis=axis)
 
 
 class BaseModel:
@@ -442,11 +424,8 @@ class EffectModel:
 
 def residual_energy(model, X) -> np.ndarray:
     """Mean squared residual (grey levels², every pixel, all channels) of parameter vectors ``X`` (N, d) of
-    ``model`` on its frames: (N, K), what the held-out residual evidence of :mod:`uw_sil.fit.judges` compares
-    (other frames: ``model.like(rframes)``). Plain squares, not :func:`ls_fit`'s robust loss: the evidence's
-    margin was measured on them, and with the robust loss in the evidence too, relative gains of a few per
-    cent of a residual the lamps or the blur had left at its floor passed that margin (a pose correction
-    named first beside mild forward scatter, a camera response before strong vignetting, on foreign trials)."""
+    ``model`` on its frames: (N, K), the quantity :func:`ls_fit` minimizes and the held-out residual evidence
+    of :mod:`uw_sil.fit.judges` compares (other frames: ``model.like(rframes)``)."""
     X = np.atleast_2d(np.asarray(X, float))
     out = np.zeros((len(X), len(model.rframes)))
     for k, rf in enumerate(model.rframes):
@@ -474,12 +453,10 @@ class _Subspace:
 
 
 def ls_fit(model: "EffectModel", x0, stride: int = 2, max_nfev: int = 12, interrupt=None,
-           free: Optional[np.ndarray] = None, robust: bool = True) -> np.ndarray:
-    """Robust least-squares fit (grey levels, Cauchy loss of scale :data:`ROBUST_SCALE`, every ``stride``-th
-    pixel) of a candidate model to its frames, from x0;
+           free: Optional[np.ndarray] = None) -> np.ndarray:
+    """Least-squares fit (grey levels, every ``stride``-th pixel) of a candidate model to its frames, from x0;
     ``interrupt`` is called before every evaluation (raises to stop); ``free``: indices of the parameters
-    fitted (default all; the others stay at x0); ``robust=False``: plain squares (a registration, whose
-    information is in the large residuals at misaligned edges)."""
+    fitted (default all; the others stay at x0)."""
     from scipy.optimize import least_squares
 
     lo, hi = model.bounds()
@@ -487,8 +464,7 @@ def ls_fit(model: "EffectModel", x0, stride: int = 2, max_nfev: int = 12, interr
     if free is not None:
         idx = np.asarray(free, int)
         x = x0.copy()
-        x[idx] = ls_fit(_Subspace(model, x0, idx), x0[idx], stride=stride, max_nfev=max_nfev, interrupt=interrupt,
-                        robust=robust)
+        x[idx] = ls_fit(_Subspace(model, x0, idx), x0[idx], stride=stride, max_nfev=max_nfev, interrupt=interrupt)
         return x
     reals = [rf.image[stride // 2::stride, stride // 2::stride] for rf in model.rframes]
     last = {}
@@ -516,8 +492,7 @@ def ls_fit(model: "EffectModel", x0, stride: int = 2, max_nfev: int = 12, interr
 
     try:
         r = least_squares(resid, x0, jac=jac, bounds=(lo, hi), method="trf",
-                          x_scale=np.maximum(hi - lo, 1e-6) * 0.1, max_nfev=max_nfev, xtol=1e-4, ftol=1e-4,
-                          loss="cauchy" if robust else "linear", f_scale=ROBUST_SCALE)
+                          x_scale=np.maximum(hi - lo, 1e-6) * 0.1, max_nfev=max_nfev, xtol=1e-4, ftol=1e-4)
     except (ValueError, FloatingPointError):
         return x0
     return r.x

@@ -12,8 +12,7 @@ Two kinds of held-out criterion:
                the model without it by more than the noise margin (:func:`margin_for`), or when the
                held-out *residual* evidence does (smooth photometric effects only,
                ``residual_evidence``): the least-squares fit of the model with the effect lowers
-               the held-out frames' mean squared residual (the fits themselves use a robust loss,
-               :data:`uw_sil.fit.diagfit.ROBUST_SCALE`), frame by frame, relative to the least-squares
+               the held-out frames' mean squared residual, frame by frame, relative to the least-squares
                fit of the model without it, pooled over the frames, by more than its own margin
                (:func:`residual_gain`).
                Both are tried for every candidate (the margins are corrected for two tests each). θ, the

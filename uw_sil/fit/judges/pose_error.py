@@ -111,10 +111,8 @@ class PoseErrorJudge(Judge):
         # held-out residual below. (With everything free, the least-squares refit of the photometric
         # parameters alone lowered an effect-free control's held-out residual by 6 %, and a 0.3 mm "pose
         # error" was accepted on it.)
-        # plain squares: a misaligned edge's large residual is the evidence of a pose error, which a robust loss
-        # caps
         x = ls_fit(model, xs[int(np.argmin(e))], stride=1, max_nfev=10, interrupt=job.interrupt,
-                   free=model.free_index(self.effect), robust=False)
+                   free=model.free_index(self.effect))
         hmodel = model.like(rsel, seed=job.seed + 50)
         eh = residual_energy(hmodel, np.stack([hmodel.x0(current.base), x]))
         imp = (eh[0] - eh[1]) / np.maximum(eh[0], 1e-9)
