@@ -67,7 +67,8 @@ def test_a_pose_correction_below_a_quarter_pixel_is_not_named():
 
     cam = CameraModel.from_fov(160, 120)
     depth = np.full((120, 160), 1.0, np.float32)
-    frame = SimpleNamespace(render=SimpleNamespace(depth=depth, range=depth), camera=cam)
+    frame = SimpleNamespace(render=SimpleNamespace(rgb=np.zeros((120, 160, 3), np.float32), depth=depth, range=depth),
+                            camera=cam, pose=None)
     assert np.isclose(image_shift([frame], {"tx": 1.0 / cam.fx}), 1.0, rtol=1e-3)    # 1 px at 1 m
     assert image_shift([frame], {}) < 1e-9
     judge = PoseErrorJudge()

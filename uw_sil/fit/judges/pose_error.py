@@ -32,24 +32,20 @@ def image_shift(frames, values: dict) -> float:
     """Largest displacement (pixels) of the model's surface points in the frames' images under the correction
     ``values`` (bias only)."""
     from ...sim.effects import get_effect
+    from ...sim.model import Geometry
 
     eff = get_effect("pose_error")
     D = eff.correction(eff.values({**values, "jitter_t": 0.0, "jitter_r": 0.0}))
     out = 0.0
     for f in frames:
-        rr, cam = f.render, f.camera
-        hit = np.isfinite(rr.depth) & np.isfinite(rr.range)
-        v, u = np.nonzero(hit)
-        step = max(1, u.size // 4000)
-        u, v = u[::step].astype(float), v[::step].astype(float)
-        z = rr.depth[v.astype(int), u.astype(int)].astype(float)
-        X = np.stack([z * (u - cam.cx) / cam.fx, z * (v - cam.cy) / cam.fy, z])
-        Y = D[:3, :3] @ X + D[:3, 3:4]
-        ok = Y[2] > 1e-6
-        du = cam.fx * Y[0, ok] / Y[2, ok] + cam.cx - u[ok]
-        dv = cam.fy * Y[1, ok] / Y[2, ok] + cam.cy - v[ok]
-        if du.size:
-            out = max(out, float(np.sqrt(du * du + dv * dv).max()))
+        g = Geometry.from_render(f.render, f.camera, f.pose)      # cached per render (reduce_frame's too)
+        X = g.X[g.hit].astype(float)
+        X = X[::max(1, len(X) // 4000)]
+        Y = X @ D[:3, :3].T + D[:3, 3]
+        ok = Y[:, 2] > 1e-6
+        if ok.any():
+            d = f.camera.project(Y[ok]) - f.camera.project(X[ok])
+            out = max(out, float(np.sqrt((d * d).sum(axis=1)).max()))
     return out
 
 
