@@ -184,6 +184,30 @@ def test_noise_statistics_leave_particles_out():
     assert 1.8 < st["sigma_water"] < 2.5 and st["lag_ratio"] > 0.9
 
 
+def test_one_frames_noise_pixels_measure_many_images_alike():
+    """The noise fit builds a frame's NoisePixels once and measures dozens of simulations with them: each
+    image's statistics must be what noise_statistics gives that image alone (nothing of one image stays)."""
+    from uw_sil.fit.signatures import NoisePixels, noise_statistics
+
+    rng = np.random.default_rng(1)
+    h, w = 240, 320
+    yy, xx = np.mgrid[0:h, 0:w]
+    hit = (abs(yy - 120) < 50) & (abs(xx - 160) < 60)
+    S = np.where(hit, 180.0, 40.0).astype(np.float32)
+    excl = np.zeros((h, w), bool)
+    excl[10:20, 10:300] = True
+    for exclude in (None, excl):
+        pix = NoisePixels(S, hit, exclude)
+        for sigma in (1.0, 3.0, 0.5):
+            Y = (S + rng.normal(0, sigma, (h, w))).astype(np.float32)
+            a, b = pix.statistics(Y), noise_statistics(Y, S, hit, exclude)
+            for k in ("sigma_water", "lag_ratio", "col_ratio", "row_ratio", "sigma_object", "i_water", "i_object"):
+                assert a[k] == b[k], (k, a[k], b[k])
+            assert abs(a["sigma_water"] - sigma) < 0.15 * sigma
+            c = pix.statistics(Y, intensities=False)
+            assert c["i_water"] is None and c["i_object"] is None and c["sigma_object"] == a["sigma_object"]
+
+
 def test_snow_is_checked_on_the_pixels_its_particles_leave_alone():
     """Issue 18, section 3: a particle model is judged on statistics, and θ on the pixels it does not claim must
     not fall. Specks alone leave those pixels as they were (θ holds); a 'particle' fit that lays a veil over

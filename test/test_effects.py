@@ -322,6 +322,30 @@ def test_sensor_noise_column_and_row_patterns_are_fixed_offsets(frames, renderer
     assert np.median(d, axis=(0, 2)).std() < 0.25 * np.median(col, axis=(0, 2)).std()
 
 
+def test_remembered_white_noise_is_the_draw_and_leaves_the_generator_where_the_draw_would():
+    """The sensor-noise field is remembered by generator state (a fit draws it from the same seed for every
+    candidate): the remembered field must be the draw itself, the generator must end where drawing would have
+    left it, and a different state must draw anew."""
+    from uw_sil.sim.effects.sensor_noise import correlated_normal, white_normal
+
+    shape = (3, 40, 50)
+    fresh = np.random.default_rng(7)
+    want = fresh.standard_normal(shape, dtype=np.float32)
+    want_next = fresh.random()
+    for _ in range(2):                                    # the second time from the memory
+        g = np.random.default_rng(7)
+        np.testing.assert_array_equal(white_normal(g, shape), want)
+        assert g.random() == want_next
+    g = np.random.default_rng(7)
+    g.random()
+    assert not np.array_equal(white_normal(g, shape), want)
+    assert not white_normal(np.random.default_rng(7), shape).flags.writeable
+    # correlated: the memory's field is not written over (the same noise twice)
+    a = correlated_normal(np.random.default_rng(9), shape, 0.8)
+    np.testing.assert_array_equal(correlated_normal(np.random.default_rng(9), shape, 0.8), a)
+    assert 0.8 < a.std() < 1.2
+
+
 def test_camera_response_is_a_function_of_intensity(frames, renderer):
     cam = renderer.camera
     base = degrade({}, frames["near"], cam)

@@ -56,7 +56,7 @@ import numpy as np
 from .residuals import ReducedFrame, dilate, erode
 
 __all__ = ["Signature", "SignatureContext", "run_signatures", "luminance", "jsonable",
-           "speck_masks", "speck_density", "particle_masks", "noise_statistics", "trimmed_sigma", "median_filter"]
+           "speck_masks", "speck_density", "particle_masks", "noise_statistics", "NoisePixels", "trimmed_sigma", "median_filter"]
 
 _MAD = 1.4826
 _LUMA = np.array([0.299, 0.587, 0.114], np.float32)
@@ -566,6 +566,77 @@ def particle_masks(ctx: "SignatureContext", grow: int = 1) -> list:
     return out
 
 
+class NoisePixels:
+    """The pixels one frame's noise statistics use (:func:`noise_statistics`), fixed by its noise-free
+    simulation ``S`` (luminance, grey levels), its model pixels ``hit`` and the pixels left out
+    (``exclude``: the recording's particles, see :func:`particle_exclusion`). Built once per frame, it measures
+    any number of images of that frame (:meth:`statistics`): the noise fit measures dozens of simulations of
+    each frame against the same pixels."""
+
+    def __init__(self, S: np.ndarray, hit: np.ndarray, exclude: Optional[np.ndarray] = None):
+        self.S, self.hit, self.exclude = S, hit, exclude
+        # open water well away from the model (a pose error moves real edges several pixels off the render)
+        self.open_water = ~dilate(hit, 24)
+        self.water = self.open_water if exclude is None else self.open_water & ~exclude
+        self.enough = bool(self.water.sum() >= 2000)
+        w = self.water
+        self.pairs1 = w[:, 1:] & w[:, :-1]
+        self.pairs3 = w[:, 3:] & w[:, :-3]
+        self.rows_w = self.open_water.all(axis=1)
+        self.cols_w = self.open_water.all(axis=0)
+        gy, gx = np.gradient(S)
+        self.flat_sim = erode(hit, 3) & (np.hypot(gx, gy) < 0.5)       # flat in the simulation
+
+    def statistics(self, Y: np.ndarray, intensities: bool = True) -> Optional[dict]:
+        """:func:`noise_statistics` of luminance ``Y`` (grey levels) of this frame; ``intensities=False``
+        leaves out the median intensities of water and object (``i_water``, ``i_object``: None)."""
+        import cv2
+
+        if not self.enough:
+            return None
+        water, open_water, exclude = self.water, self.open_water, self.exclude
+        hp = _hp(Y, 2.0)
+        d1 = (Y[:, 1:] - Y[:, :-1])[self.pairs1]
+        d3 = (Y[:, 3:] - Y[:, :-3])[self.pairs3]
+        s1, s3 = trimmed_sigma(d1), trimmed_sigma(d3)
+        out = {"sigma_water": s3, "lag_ratio": s1 / s3 if s3 > 0 else 1.0, "col_ratio": 1.0, "row_ratio": 1.0,
+               "sigma_object": None, "i_object": None,
+               "i_water": float(np.median(Y[water])) if intensities else None, "hp": hp, "water": water}
+        # fixed pattern: column (row) medians of the high-passed water against what white noise gives for a
+        # median of n values (pi/2 sigma^2/n; n the pixels left in the column after the exclusion)
+        sig2 = (trimmed_sigma(hp[water][1:] - hp[water][:-1]) if water.sum() > 100 else 0.0) ** 2
+
+        def median_var_ratio(block, keep, axis):
+            if keep is None:
+                return float(np.var(np.median(block, axis=axis)) / (np.pi / 2 * sig2 / block.shape[axis]))
+            n = keep.sum(axis=axis)
+            ok = n >= 0.5 * block.shape[axis]
+            if ok.sum() < 20:
+                return 1.0
+            vals = np.where(keep, block, np.nan)
+            vals = vals[:, ok] if axis == 0 else vals[ok]           # lines with too few pixels left are skipped
+            med = np.nanmedian(vals, axis=axis)
+            return float(np.var(med) / np.mean(np.pi / 2 * sig2 / n[ok]))
+
+        rows_w, cols_w = self.rows_w, self.cols_w
+        if rows_w.sum() >= 20 and sig2 > 0:
+            out["col_ratio"] = median_var_ratio(hp[rows_w], None if exclude is None else ~exclude[rows_w], 0)
+        if cols_w.sum() >= 20 and sig2 > 0:
+            out["row_ratio"] = median_var_ratio(hp[:, cols_w], None if exclude is None else ~exclude[:, cols_w], 1)
+        ry, rx = np.gradient(cv2.GaussianBlur(Y, (0, 0), 2.0))
+        # flat in the simulation and in the recording (a pose error puts real edges where the render is flat)
+        flat = self.flat_sim & (np.hypot(rx, ry) < 1.5)
+        flat &= erode(flat, 2)
+        if exclude is not None:
+            flat &= ~exclude
+        if flat.sum() > 300:
+            dd = (Y[:, 3:] - Y[:, :-3])
+            ok = flat[:, 3:] & flat[:, :-3]
+            out["sigma_object"] = trimmed_sigma(dd[ok])
+            out["i_object"] = float(np.median(self.S[flat])) if intensities else None
+        return out
+
+
 def noise_statistics(Y: np.ndarray, S: np.ndarray, hit: np.ndarray,
                      exclude: Optional[np.ndarray] = None) -> Optional[dict]:
     """Noise statistics of one full-resolution frame (luminance ``Y``, grey levels) against its noise-free
@@ -573,55 +644,8 @@ def noise_statistics(Y: np.ndarray, S: np.ndarray, hit: np.ndarray,
     lag-3 sigma (1 for white noise), column and row fixed-pattern variance ratios, the noise sigma on flat
     object parts and the intensities of both. ``exclude``: pixels left out (particles of the recording, see
     :func:`particle_exclusion`; give a simulation of the same frame the same mask). None when the frame has
-    too little open water."""
-    # open water well away from the model (a pose error moves real edges several pixels off the render)
-    open_water = ~dilate(hit, 24)
-    water = open_water if exclude is None else open_water & ~exclude
-    if water.sum() < 2000:
-        return None
-    hp = _hp(Y, 2.0)
-    d1 = (Y[:, 1:] - Y[:, :-1])[water[:, 1:] & water[:, :-1]]
-    d3 = (Y[:, 3:] - Y[:, :-3])[water[:, 3:] & water[:, :-3]]
-    s1, s3 = trimmed_sigma(d1), trimmed_sigma(d3)
-    out = {"sigma_water": s3, "lag_ratio": s1 / s3 if s3 > 0 else 1.0, "col_ratio": 1.0, "row_ratio": 1.0,
-           "sigma_object": None, "i_object": None, "i_water": float(np.median(Y[water])), "hp": hp, "water": water}
-    # fixed pattern: column (row) medians of the high-passed water against what white noise gives for a
-    # median of n values (pi/2 sigma^2/n; n the pixels left in the column after the exclusion)
-    sig2 = (trimmed_sigma(hp[water][1:] - hp[water][:-1]) if water.sum() > 100 else 0.0) ** 2
-
-    def median_var_ratio(block, keep, axis):
-        if keep is None:
-            return float(np.var(np.median(block, axis=axis)) / (np.pi / 2 * sig2 / block.shape[axis]))
-        n = keep.sum(axis=axis)
-        ok = n >= 0.5 * block.shape[axis]
-        if ok.sum() < 20:
-            return 1.0
-        vals = np.where(keep, block, np.nan)
-        vals = vals[:, ok] if axis == 0 else vals[ok]           # lines with too few pixels left are skipped
-        med = np.nanmedian(vals, axis=axis)
-        return float(np.var(med) / np.mean(np.pi / 2 * sig2 / n[ok]))
-
-    rows_w = open_water.all(axis=1)
-    if rows_w.sum() >= 20 and sig2 > 0:
-        out["col_ratio"] = median_var_ratio(hp[rows_w], None if exclude is None else ~exclude[rows_w], 0)
-    cols_w = open_water.all(axis=0)
-    if cols_w.sum() >= 20 and sig2 > 0:
-        out["row_ratio"] = median_var_ratio(hp[:, cols_w], None if exclude is None else ~exclude[:, cols_w], 1)
-    import cv2
-
-    gy, gx = np.gradient(S)
-    ry, rx = np.gradient(cv2.GaussianBlur(Y, (0, 0), 2.0))
-    # flat in the simulation and in the recording (a pose error puts real edges where the render is flat)
-    flat = erode(hit, 3) & (np.hypot(gx, gy) < 0.5) & (np.hypot(rx, ry) < 1.5)
-    flat &= erode(flat, 2)
-    if exclude is not None:
-        flat &= ~exclude
-    if flat.sum() > 300:
-        dd = (Y[:, 3:] - Y[:, :-3])
-        ok = flat[:, 3:] & flat[:, :-3]
-        out["sigma_object"] = trimmed_sigma(dd[ok])
-        out["i_object"] = float(np.median(S[flat]))
-    return out
+    too little open water. Measuring many images of one frame: :class:`NoisePixels`."""
+    return NoisePixels(S, hit, exclude).statistics(Y)
 
 
 def sig_sensor_noise(ctx: SignatureContext) -> Signature:

@@ -42,14 +42,14 @@ def noise_refit(fit_f, held_f, base_x, sig, fog, seed, ref_held_pf, base_theta_t
     from ...sim.noise import NoiseField, water_noise_sigma
     from ...sim.optics import degrade
     from ..optimize import optimize
-    from ..signatures import luminance, noise_statistics, particle_exclusion
+    from ..signatures import NoisePixels, luminance, particle_exclusion
 
     fixed = {e: () for e in effects}
 
     def prep(frames):
         """per frame: noise-free simulation S (the current model: base and its deterministic effects), the
-        recording's statistics, and the pixels every statistic of that frame uses (hit: the model; excl: the
-        recording's particles, left out of real and simulated)."""
+        recording's statistics, and the pixels every statistic of that frame uses (NoisePixels of the model's
+        pixels, leaving out the recording's particles in real and simulated)."""
         rfs = [reduce_frame(f, 1) for f in frames]
         cur = EffectModel(rfs, effects, values=values, free=fixed, fog=fog, seed=seed) if effects else None
         S, real, hits = [], [], []
@@ -67,14 +67,15 @@ def noise_refit(fit_f, held_f, base_x, sig, fog, seed, ref_held_pf, base_theta_t
             more = (exclude or {}).get(id(f))
             if more is not None:
                 excl = more if excl is None else excl | more
-            hits.append((hit, excl))
-            real.append(noise_statistics(Y, Ys, hit, excl))
+            pix = NoisePixels(Ys, hit, excl)
+            hits.append(pix)
+            real.append(pix.statistics(Y))
         return rfs, S, real, hits
 
-    def stats_of(img255, S, pix):
+    def stats_of(img255, pix):
         np.clip(img255, 0, 255, out=img255)
         np.rint(img255, out=img255)
-        return noise_statistics(luminance(img255), luminance(S), *pix)
+        return pix.statistics(luminance(img255), intensities=False)      # dist() uses no intensity
 
     def dist(a, b):
         if a is None or b is None:
@@ -102,7 +103,7 @@ def noise_refit(fit_f, held_f, base_x, sig, fog, seed, ref_held_pf, base_theta_t
 
     def frame_dist(k, X):
         imgs = model.simulate(k, X) * 255.0
-        d = np.array([dist(real_fit[k], stats_of(imgs[j], Sfit[k], hfit[k])) for j in range(len(X))])
+        d = np.array([dist(real_fit[k], stats_of(imgs[j], hfit[k])) for j in range(len(X))])
         return np.where(np.isnan(d), 0.0, d)
 
     def objective(U):
@@ -130,9 +131,9 @@ def noise_refit(fit_f, held_f, base_x, sig, fog, seed, ref_held_pf, base_theta_t
             cand = mdl.simulate(k, x[None])[0] * 255.0
             np.clip(cand, 0, 255, out=cand)
             np.rint(cand, out=cand)
-            eb.append(dist(real[k], noise_statistics(luminance(base_img), luminance(S_list[k]), *hits[k])))
-            ec.append(dist(real[k], noise_statistics(luminance(cand), luminance(S_list[k]), *hits[k])))
-            hit = hits[k][0]
+            eb.append(dist(real[k], hits[k].statistics(luminance(base_img), intensities=False)))
+            ec.append(dist(real[k], hits[k].statistics(luminance(cand), intensities=False)))
+            hit = hits[k].hit
             hm = [hit, ~hit] if hit.any() and not hit.all() else None
             ref = ThetaReference(f.image, hist_mask=hm)
             tb.append(float(ref.score(base_img)[0]))
