@@ -378,6 +378,49 @@ def test_a_plausible_explanation_is_chosen_before_a_stretched_one(bags, monkeypa
     assert any("vignetting passed over" in m and "planted doubt" in m for m in said), said
 
 
+def test_lamps_too_close_to_the_camera_are_held_at_the_nearest_possible_distance_in_the_same_direction():
+    from uw_sil.fit.judges import JUDGES
+
+    lamps = JUDGES["artificial_light"]
+    assert lamps.pinned({"offset_x": 0.35, "offset_y": -0.15}) == {}
+    assert lamps.pinned({"offset_x": 0.04, "offset_y": -0.03}) == pytest.approx({"offset_x": 0.24, "offset_y": -0.18})
+    assert lamps.pinned({"offset_x": 0.0, "offset_y": 0.0}) == pytest.approx({"offset_x": 0.3, "offset_y": 0.0})
+    held = lamps.with_pinned({"offset_x": 0.24, "offset_y": -0.18})
+    assert "offset_x" not in held.free_params() and held.fixed["offset_y"] == -0.18
+    assert "offset_x" in lamps.free_params() and "offset_x" not in lamps.fixed        # the registry's untouched
+
+
+def test_a_fit_outside_physical_range_is_refitted_with_its_values_held_at_the_nearest_possible_ones(bags,
+                                                                                                 monkeypatch):
+    """A candidate fitted outside the ranges deep-sea physics allows is refitted with the values responsible
+    held at the nearest possible ones (mild lamps barely fix their position: a foreign lamp dive's fit put them
+    0.08 m from the camera, and held at 0.3 m they scored held-out θ 0.871 against 0.867). Planted: lamps
+    must sit 0.9-1.5 m from the camera (pinned at 1.0 m); the trial's lamps are 0.67 m from it. The lamps must
+    be chosen from the refit that holds them at 1.0 m, keep that distance through the full-budget refit, carry
+    no doubt, and say that they were held."""
+    import math
+
+    import uw_sil.fit.judges.artificial_light as al
+    from uw_sil.fit.diagnose import diagnose_bag
+
+    monkeypatch.setattr(al, "MIN_DISTANCE", 0.9)
+    monkeypatch.setattr(al, "ROV_DISTANCE", (1.0, 1.5))
+    said = []
+    doc = diagnose_bag(bags["artificial_light"], k=6, effects_allowed=["artificial_light"], max_effects=1,
+                       progress=said.append).to_json()
+    free = next(c for c in doc["candidates"] if c["round"] == 1 and "pinned" not in c and not c.get("full_refit"))
+    assert math.hypot(free["params"]["artificial_light.offset_x"], free["params"]["artificial_light.offset_y"]) < 0.9
+    pinned = [c for c in doc["candidates"] if c.get("pinned")]
+    assert len(pinned) == 1 and pinned[0]["accepted"] and pinned[0]["doubts"] == [], pinned
+    assert math.hypot(*pinned[0]["pinned"].values()) == pytest.approx(1.0)
+    assert any("refitted with offset_x" in m and "held" in m for m in said), said
+    [v] = doc["verdict"]
+    assert v["effect"] == "artificial_light" and v["doubts"] == []
+    assert "held at the nearest physically possible values" in v["explanation"], v["explanation"]
+    fp = doc["final"]["params"]
+    assert math.hypot(fp["artificial_light.offset_x"], fp["artificial_light.offset_y"]) == pytest.approx(1.0)
+
+
 def test_a_residual_acceptance_is_declined_when_its_model_loses_more_theta(bags, monkeypatch):
     """An effect accepted by the held-out residual adopts its least-squares fit. When θ scores that fit lower by
     more margins than the residual's gain (own lamp trial, 640x480: camera response taking 2 % of the residual

@@ -341,6 +341,48 @@ def _eliminate(job, current, accepted: list, seed: int, say, candidates: list, s
     return current, dropped
 
 
+def _refit_pinned(cheap, current, oks: list, n_cands: int, candidates: list, rnd: int, seed: int,
+                  say) -> tuple:
+    """A round's accepted candidates fitted outside the ranges deep-sea physics allows (doubts) that would rank
+    above every plausible one without their doubts: each is refitted (cheap budget, as the round's refits) with
+    the parameters responsible held at their nearest possible values (:meth:`~uw_sil.fit.judges.base.Judge.
+    pinned`: mild lamps barely fix their position, and the fit can put them 0.08 m from the camera with the
+    same held-out θ as at 0.3 m). If that refit still beats its margin it replaces the stretched one in
+    ``oks``; its row is appended to ``candidates`` (``pinned``). Returns ``(oks, jobs)``: ``jobs`` maps such an
+    effect to the job whose plug-in holds the values (its full-budget refit must hold them too)."""
+    from .judges import JUDGES
+    from .judges.base import residual_gain, residual_improvement
+
+    plausible = max((c[5][1:] for c in oks if c[5][0]), default=(False, -np.inf))
+    out, jobs = [], {}
+    for choice in oks:
+        e, r, strength, margin, crit, rank = choice
+        judge = JUDGES[e]
+        values = r.params["effects"].get(e, {})
+        pins = judge.pinned(values) if not rank[0] and rank[1:] > plausible and judge.kind == "theta" else {}
+        if not pins:
+            out.append(choice)
+            continue
+        because = "; ".join(judge.ranges(values)) or "outside its physical range"
+        say(f"round {rnd}: {e} refitted with " + ", ".join(f"{n} {v:.3g}" for n, v in pins.items())
+            + f" held ({because})")
+        job_e = replace(cheap, judges={**cheap.judges, e: judge.with_pinned(pins)})
+        rp = job_e.judges[e].refit(job_e, current)
+        rp.extra["pinned"] = {"values": pins, "because": because}
+        rgain = residual_gain(current, rp, 2 * n_cands, seed=seed)
+        ok, s2, c2 = judge.accept(rp, current, margin, rgain)
+        doubts = judge.plausibility(rp.params["effects"].get(e, {}), ()) if ok else []
+        candidates.append({**_candidate_row(rnd, current, e, rp, margin, ok, s2, c2,
+                                            residual_improvement(current, rp), rgain),
+                           "doubts": doubts, "pinned": dict(pins)})
+        if ok and not doubts:
+            out.append((e, rp, s2, margin, c2, (True, c2 == "theta", s2)))
+            jobs[e] = job_e
+        else:
+            out.append(choice)
+    return out, jobs
+
+
 def _refit_one(shared, effect):
     """One candidate's refit (:meth:`uw_sil.fit.judges.base.Judge.refit`), in a worker process or here; its
     time in ``extra["refit_s"]``."""
@@ -519,6 +561,7 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
                 if ok:
                     oks.append((e, r, strength, margin, crit, rank))
             candidates += rows
+            oks, pinned_jobs = _refit_pinned(cheap, current, oks, len(rows), candidates, rnd, seed, say)
             oks.sort(key=lambda c: c[5], reverse=True)
             best, r_full = None, None
             for choice in oks:
@@ -566,8 +609,9 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
             if judge.kind == "theta" and not judge.absorb and job.max_iter > cheap.max_iter and not keep:
                 say(f"round {rnd}: refitting {current.name} + {e} with the full budget")
                 starts = ([r.extra["ls_x"]] if "ls_x" in r.extra else []) + ([] if r.started_at_current else [r.x])
-                r_full = judge.refit(job, current, x_starts=starts)
-                r_full.extra.update({k: v for k, v in r.extra.items() if k.startswith("ls_")})
+                job_e = replace(job, judges=pinned_jobs[e].judges) if e in pinned_jobs else job
+                r_full = job_e.judges[e].refit(job_e, current, x_starts=starts)
+                r_full.extra.update({k: v for k, v in r.extra.items() if k.startswith("ls_") or k == "pinned"})
             if keep or (judge.kind == "theta" and not judge.absorb and job.max_iter > cheap.max_iter):
                 candidates.append({**_candidate_row(rnd, current, e, r_full, margin, True, strength, crit,
                                                     residual_improvement(current, r_full),
@@ -587,6 +631,7 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
             say(f"round {rnd}: accepted {e} by held-out {how} (held-out θ {before:.4f} -> "
                 f"{current.sel_pf.mean():.4f}, residual {np.mean(before_E):.3g} -> {np.mean(current.ls_sel_E):.3g} grey levels²)")
             accepted.append({"effect": e, "refit": r, "strength": strength, "margin": margin, "before": before,
+                             "pinned": r.extra.get("pinned"),
                              "after": float(current.sel_pf.mean()), "criterion": crit,
                              "residual_before": float(np.mean(before_E)),
                              "residual_after": float(np.mean(current.ls_sel_E))})
@@ -653,6 +698,11 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
         words = gain_words(a["before"], a["after"], r.statistic if judge.kind == "statistic" else None,
                            (a["residual_before"], a["residual_after"]) if a.get("criterion") == "residual" else None)
         text = judge.explain(vals, words, sigs.get(e))
+        pins = a.get("pinned") or {}
+        if pins and all(abs(vals.get(n, np.inf) - v) < 1e-9 for n, v in pins["values"].items()):
+            text += (f" — held at the nearest physically possible values ("
+                     + ", ".join(f"{n} {v:.3g}" for n, v in pins["values"].items())
+                     + f"): fitted freely, {pins['because']}")
         if doubts:
             text += " — doubt: " + "; ".join(doubts)
         verdict.append({"effect": e, "confidence": _confidence(a["strength"], doubts), "explanation": text,

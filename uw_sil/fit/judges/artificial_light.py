@@ -8,6 +8,12 @@ import numpy as np
 from .base import Judge
 
 
+#: Lamps fitted closer to the camera than this (m) are doubted: nothing but a ring light sits there.
+MIN_DISTANCE = 0.1
+#: Where ROV lamps sit, metres from the camera (deep-sea ROV practice: 0.3-1.5 m).
+ROV_DISTANCE = (0.3, 1.5)
+
+
 class ArtificialLightJudge(Judge):
     effect = "artificial_light"
     # power is free: how bright the lamps are against the render's light level is the recording's, not ours
@@ -70,6 +76,20 @@ class ArtificialLightJudge(Judge):
     def ranges(self, e):
         out = []
         d = math.hypot(e.get("offset_x", 0), e.get("offset_y", 0))
-        if d < 0.1:
-            out.append(f"lamps {d:.2f} m from the camera: ROV lamps sit 0.3-1.5 m from it")
+        if d < MIN_DISTANCE:
+            out.append(f"lamps {d:.2f} m from the camera: ROV lamps sit {ROV_DISTANCE[0]:g}-{ROV_DISTANCE[1]:g} m "
+                       f"from it")
         return out
+
+    def pinned(self, e):
+        """Lamps fitted closer to the camera than lamps can sit (mild lamps barely fix their position: the
+        same brightening with range from almost any rig): held at the nearest distance ROV lamps sit at, in
+        the same direction from the camera (beside it when the fit put them on its axis)."""
+        ox, oy = e.get("offset_x", 0.0), e.get("offset_y", 0.0)
+        d = math.hypot(ox, oy)
+        if d >= MIN_DISTANCE:
+            return {}
+        if d < 1e-3:
+            ox, oy, d = 1.0, 0.0, 1.0
+        k = ROV_DISTANCE[0] / d
+        return {"offset_x": ox * k, "offset_y": oy * k}

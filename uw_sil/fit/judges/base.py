@@ -399,6 +399,23 @@ class Judge:
         """Values outside the ranges deep-sea physics allows (plug-ins override)."""
         return []
 
+    def pinned(self, values: dict) -> dict:
+        """For fitted values outside the ranges deep-sea physics allows (:meth:`ranges`): the nearest
+        physically possible values of the parameters responsible, to be held there in a refit ({}: none, or
+        the plug-in has no such repair; plug-ins override). Where the recording barely determines a parameter,
+        the fit may wander outside its physical range along an almost flat direction; the refit with it held
+        at the nearest possible value tells whether the effect needs the impossible value or not."""
+        return {}
+
+    def with_pinned(self, pins: dict) -> "Judge":
+        """A copy of this plug-in that holds ``pins`` (name -> value) fixed and refits the rest."""
+        import copy
+
+        j = copy.copy(self)
+        j.free = tuple(n for n in self.free_params() if n not in pins)
+        j.fixed = {**self.fixed, **pins}
+        return j
+
 
 # ====================================================================================== the generic refit
 
