@@ -112,7 +112,9 @@ def test_graphs_with_diagnose_compressed_images_markers_and_a_camera_file():
     fit = specs["backward_fit"].parameters
     assert fit["diagnose"] is True and fit["diagnose_frames"] == 6 and fit["output_json"] == "/d/diag.json"
     assert fit["image_transport"] == "compressed" and fit["camera_info_file"] == "/d/cam.yaml"
-    assert specs["panel_pose"].parameters == {"image_transport": "compressed", "camera_info_file": "/d/cam.yaml"}
+    # a replay is read reliably (bag_play publishes reliably: nothing lost)
+    assert specs["panel_pose"].parameters == {"image_transport": "compressed", "camera_info_file": "/d/cam.yaml",
+                                              "reliable_input": True}
     play = specs["bag_play"].parameters
     assert play["wait_for_topics"] == ["/camera/image_raw/compressed"]      # no /panel/pose in such a bag
     assert play["wait_for_nodes"] == ["backward_fit", "panel_pose"]
@@ -142,11 +144,15 @@ def test_forward_graph_reads_compressed_images_markers_and_a_camera_file():
     assert specs["sim_camera"].parameters == {**graph.REPLAY_SIM_CAMERA, "camera_info_file": "/d/cam.yaml"}
     assert specs["enhancer"].parameters["image_transport"] == "compressed" and specs["enhancer"].required
     assert specs["enhancer"].parameters["idle_timeout"] == graph.MARKER_IDLE_TIMEOUT   # the poses come later
-    assert specs["panel_pose"].parameters == {"image_transport": "compressed", "camera_info_file": "/d/cam.yaml"}
+    # a replay is read reliably (bag_play publishes reliably: nothing lost)
+    assert specs["panel_pose"].parameters == {"image_transport": "compressed", "camera_info_file": "/d/cam.yaml",
+                                              "reliable_input": True}
     play = specs["bag_play"].parameters
     assert play["wait_for_topics"] == ["/camera/image_raw/compressed"]       # no /panel/pose in such a bag
     assert play["wait_for_nodes"] == ["enhancer", "panel_pose"]
     # a recorded pose topic: bag_play waits for the pose reader too, as before
+    live = {s.name: s for s in graph.forward_graph(image_transport="compressed", pose_source="markers")}
+    assert "reliable_input" not in live["panel_pose"].parameters      # a live camera: sensor-data QoS
     plain = {s.name: s for s in graph.forward_graph(bag="/d/t.mcap", image_transport="compressed")}
     assert plain["bag_play"].parameters["wait_for_topics"] == ["/camera/image_raw/compressed", "/panel/pose"]
     assert "panel_pose" not in plain
@@ -698,7 +704,14 @@ def test_uw_sil_launch_forward_on_a_field_recording(field_bag, tmp_path):
             print(f"uw-sil launch forward (compressed, markers): {done['enhanced']} of 12 frames enhanced, "
                   f"{posed} with a marker pose offline")
             assert posed >= 6, posed
-            assert done["enhanced"] == posed and done["dropped_unpaired"] == 12 - posed, done
+            # what panel_pose received and posed (its last log line), to name where a frame went missing
+            pp = re.search(r"\[panel_pose\s*\].*done; (\{.*\})", text)
+            pp = json.loads(pp.group(1)) if pp else "no final line of panel_pose"
+            # read reliably (a replay), panel_pose gets every image, and poses the frames the reader poses offline
+            assert isinstance(pp, dict) and pp.get("images") == 12 and pp.get("poses") == posed, (posed, pp)
+            assert done["enhanced"] == posed and done["dropped_unpaired"] == 12 - posed, (
+                f"{done['enhanced']} of {posed} frames with a marker pose offline enhanced; enhancer {done}; "
+                f"panel_pose {pp}")
             assert done["dropped_bad"] == 0 and done["dropped_queue"] == 0, done
         assert_clean_output(text, "uw-sil launch forward")
     finally:

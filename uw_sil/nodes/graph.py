@@ -74,6 +74,12 @@ def _camera_input(image_transport: str, pose_source: str, camera_info_file: str)
     return params, marker_node
 
 
+def _replayed(marker_node: Optional[NodeSpec]) -> None:
+    """A bag is replayed: panel_pose reads the camera reliably (bag_play publishes reliably; nothing lost)."""
+    if marker_node is not None:
+        marker_node.parameters["reliable_input"] = True
+
+
 #: Seconds without a new frame after which ``backward_fit`` fits the frames it has (replayed bags).
 IDLE_TIMEOUT = 3.0
 
@@ -125,6 +131,7 @@ def backward_graph(sim_params: Optional[str] = None, bag: Optional[str] = None, 
         fit["idle_timeout"] = IDLE_TIMEOUT
         fit["first_frame_timeout"] = 0.0 if start_paused else FIRST_FRAME_TIMEOUT
         fit["reliable_input"] = True          # bag_play publishes reliably: a replay loses no frame
+        _replayed(marker_node)
     if max_iter is not None:
         fit["max_iter"] = int(max_iter)
     if stride is not None:
@@ -206,6 +213,7 @@ def forward_graph(sim_params: Optional[str] = None, bag: Optional[str] = None, r
     if marker_node is not None:
         nodes.append(marker_node)
     if bag:
+        _replayed(marker_node)
         if marker_node is None:
             # without wait_for_nodes bag_play waits for a *matched* reader on each topic: the enhancer on the
             # camera, sim_camera on the poses (both are the only readers in this graph)

@@ -27,7 +27,7 @@ import sys
 
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, QoSProfile, qos_profile_sensor_data
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import String
@@ -58,7 +58,9 @@ class PanelPoseNode(Node):
                 ("max_rms_px", 2.0, "largest marker-corner reprojection error of an accepted pose [px]",
                  {"floating_point_range": [FloatingPointRange(from_value=0.1, to_value=100.0, step=0.0)]}),
                 ("pending_images", 30, "images kept waiting for the first camera_info",
-                 {"integer_range": [IntegerRange(from_value=1, to_value=1000, step=1)]})):
+                 {"integer_range": [IntegerRange(from_value=1, to_value=1000, step=1)]}),
+                ("reliable_input", False, "subscribe to the camera reliably (a replayed bag: nothing lost) instead "
+                 "of with sensor-data QoS (best effort: matches any camera driver)", {})):
             self.declare_parameter(name, default, d(description=f"{description}; read at start", read_only=True,
                                                     **fields))
         g = lambda n: self.get_parameter(n).value  # noqa: E731
@@ -78,9 +80,10 @@ class PanelPoseNode(Node):
         self.pub_pose = self.create_publisher(PoseStamped, "panel/pose", 10)
         self.pub_status = self.create_publisher(String, "~/status",
                                                 QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL))
-        # a deep queue: a pose takes tens of ms (ECC refinement), images of a replayed burst must not be lost
-        sensor = QoSProfile(depth=100, reliability=qos_profile_sensor_data.reliability,
-                            durability=qos_profile_sensor_data.durability)
+        # a deep queue: a pose takes tens of ms (ECC refinement), images of a replayed burst must not be lost;
+        # a replay is read reliably, as backward_fit reads it (under load best effort lost frames there)
+        reliability = ReliabilityPolicy.RELIABLE if g("reliable_input") else qos_profile_sensor_data.reliability
+        sensor = QoSProfile(depth=100, reliability=reliability, durability=qos_profile_sensor_data.durability)
         topic, msg_type = TRANSPORTS[g("image_transport")]
         self.sub_image = self.create_subscription(msg_type, topic, self._on_image, sensor)
         if self.camera is None:
@@ -142,6 +145,9 @@ class PanelPoseNode(Node):
             self.pub_status.publish(String(data=json.dumps(self.status())))
 
     def destroy_node(self):
+        if getattr(self, "counts", None) is not None:
+            # what it received and posed, once at the end: a graph test names where a frame went missing
+            self.get_logger().info(f"done; {json.dumps(self.status())}")
         if getattr(self, "estimator", None) is not None:
             self.estimator.close()
         super().destroy_node()
