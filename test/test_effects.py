@@ -323,27 +323,33 @@ def test_sensor_noise_column_and_row_patterns_are_fixed_offsets(frames, renderer
 
 
 def test_remembered_white_noise_is_the_draw_and_leaves_the_generator_where_the_draw_would():
-    """The sensor-noise field is remembered by generator state (a fit draws it from the same seed for every
-    candidate): the remembered field must be the draw itself, the generator must end where drawing would have
-    left it, and a different state must draw anew."""
-    from uw_sil.sim.effects.sensor_noise import correlated_normal, white_normal
+    """The sensor-noise field is remembered by generator state within a fit (it draws from the same seed for
+    every candidate): the remembered field must be the draw itself, the generator must end where drawing would
+    have left it, and a different state must draw anew; outside a fit nothing is kept."""
+    import uw_sil.sim.effects.sensor_noise as sn
 
     shape = (3, 40, 50)
     fresh = np.random.default_rng(7)
     want = fresh.standard_normal(shape, dtype=np.float32)
     want_next = fresh.random()
-    for _ in range(2):                                    # the second time from the memory
+    with sn.remembered_white_noise():
+        for _ in range(2):                                # the second time from the memory
+            g = np.random.default_rng(7)
+            np.testing.assert_array_equal(sn.white_normal(g, shape), want)
+            assert g.random() == want_next
+        assert len(sn._white) == 1
         g = np.random.default_rng(7)
-        np.testing.assert_array_equal(white_normal(g, shape), want)
-        assert g.random() == want_next
+        g.random()
+        assert not np.array_equal(sn.white_normal(g, shape), want)
+        assert not sn.white_normal(np.random.default_rng(7), shape).flags.writeable
+        # correlated: the memory's field is not written over (the same noise twice)
+        a = sn.correlated_normal(np.random.default_rng(9), shape, 0.8)
+        np.testing.assert_array_equal(sn.correlated_normal(np.random.default_rng(9), shape, 0.8), a)
+        assert 0.8 < a.std() < 1.2
+    assert not sn._white                                  # forgotten after the fit
     g = np.random.default_rng(7)
-    g.random()
-    assert not np.array_equal(white_normal(g, shape), want)
-    assert not white_normal(np.random.default_rng(7), shape).flags.writeable
-    # correlated: the memory's field is not written over (the same noise twice)
-    a = correlated_normal(np.random.default_rng(9), shape, 0.8)
-    np.testing.assert_array_equal(correlated_normal(np.random.default_rng(9), shape, 0.8), a)
-    assert 0.8 < a.std() < 1.2
+    np.testing.assert_array_equal(sn.white_normal(g, shape), want)
+    assert g.random() == want_next and not sn._white      # a live camera's frames are not kept
 
 
 def test_camera_response_is_a_function_of_intensity(frames, renderer):

@@ -39,6 +39,7 @@ def noise_refit(fit_f, held_f, base_x, sig, fog, seed, ref_held_pf, base_theta_t
     statistics and the simulation's is compared for the base model (constant Gaussian noise estimated on
     the water, as the backward fit adds) and the candidate. θ is measured on the held-out frames at full
     resolution for both; the candidate's θ is reported as the base reference plus that difference."""
+    from ...sim.effects.sensor_noise import remembered_white_noise
     from ...sim.noise import NoiseField, water_noise_sigma
     from ...sim.optics import degrade
     from ..optimize import optimize
@@ -114,7 +115,7 @@ def noise_refit(fit_f, held_f, base_x, sig, fog, seed, ref_held_pf, base_theta_t
         per_frame = list(pool.map(lambda k: frame_dist(k, X), range(len(rfit))))
         return -np.sum(per_frame, axis=0)
 
-    with ThreadPoolExecutor(default_threads(), thread_name_prefix="uw_sil-noise") as pool:
+    with ThreadPoolExecutor(default_threads(), thread_name_prefix="uw_sil-noise") as pool, remembered_white_noise():
         res = optimize(objective, lo[free], hi[free], method="cmaes", seed=seed, max_iter=8, swarm_size=6,
                        x0=x0[free], sigma0=0.15)
     x = x0.copy()
