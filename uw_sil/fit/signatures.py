@@ -578,7 +578,8 @@ class NoisePixels:
         # open water well away from the model (a pose error moves real edges several pixels off the render)
         self.open_water = ~dilate(hit, 24)
         self.water = self.open_water if exclude is None else self.open_water & ~exclude
-        self.enough = bool(self.water.sum() >= 2000)
+        self.n_water = int(self.water.sum())
+        self.enough = self.n_water >= 2000
         w = self.water
         self.pairs1 = w[:, 1:] & w[:, :-1]
         self.pairs3 = w[:, 3:] & w[:, :-3]
@@ -604,7 +605,8 @@ class NoisePixels:
                "i_water": float(np.median(Y[water])) if intensities else None, "hp": hp, "water": water}
         # fixed pattern: column (row) medians of the high-passed water against what white noise gives for a
         # median of n values (pi/2 sigma^2/n; n the pixels left in the column after the exclusion)
-        sig2 = (trimmed_sigma(hp[water][1:] - hp[water][:-1]) if water.sum() > 100 else 0.0) ** 2
+        hw = hp[water]
+        sig2 = (trimmed_sigma(hw[1:] - hw[:-1]) if self.n_water > 100 else 0.0) ** 2
 
         def median_var_ratio(block, keep, axis):
             if keep is None:
