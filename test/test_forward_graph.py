@@ -8,9 +8,11 @@ def test_forward_graph_with_a_bag_ends_with_the_enhancer():
     specs = {s.name: s for s in graph.forward_graph(sim_params="/d/fit.yaml", bag="/d/t.mcap", method="dcp")}
     assert list(specs) == ["sim_camera", "enhancer", "bag_play"]
     assert specs["sim_camera"].param_files == ["/d/fit.yaml"]
-    assert specs["sim_camera"].parameters == graph.REPLAY_SIM_CAMERA          # renders every replayed pose
+    # renders every replayed pose, and sends every render reliably to the enhancer, which reads reliably
+    assert specs["sim_camera"].parameters == {**graph.REPLAY_SIM_CAMERA, "reliable_output": True}
     e = specs["enhancer"]
     assert e.required and e.parameters["idle_timeout"] == graph.IDLE_TIMEOUT and e.parameters["method"] == "dcp"
+    assert e.parameters["reliable_input"] is True
     play = specs["bag_play"].parameters
     assert play["wait_for_topics"] == ["/camera/image_raw", "/panel/pose"] and "wait_for_nodes" not in play
     assert not specs["bag_play"].required

@@ -123,6 +123,7 @@ def test_graphs_with_diagnose_compressed_images_markers_and_a_camera_file():
     sil = {s.name: s for s in graph.sil_graph(bag="t.mcap", diagnose=True, image_transport="compressed")}
     assert sil["enhancer"].parameters["image_transport"] == "compressed"
     assert sil["sim_camera"].parameters["extensible_effects"] == "all" and "panel_pose" not in sil
+    assert sil["sim_camera"].parameters["reliable_output"] is True and sil["enhancer"].parameters["reliable_input"]
     # the launch argument and the uw-sil launch option
     g = graph.GRAPHS["backward"]
     assert g.nodes({"diagnose": "true"})[1].parameters["diagnose"] is True
@@ -141,8 +142,10 @@ def test_forward_graph_reads_compressed_images_markers_and_a_camera_file():
                                                     image_transport="compressed", pose_source="markers",
                                                     camera_info_file="/d/cam.yaml")}
     assert list(specs) == ["sim_camera", "enhancer", "panel_pose", "bag_play"]
-    assert specs["sim_camera"].parameters == {**graph.REPLAY_SIM_CAMERA, "camera_info_file": "/d/cam.yaml"}
+    assert specs["sim_camera"].parameters == {**graph.REPLAY_SIM_CAMERA, "camera_info_file": "/d/cam.yaml",
+                                              "reliable_output": True}
     assert specs["enhancer"].parameters["image_transport"] == "compressed" and specs["enhancer"].required
+    assert specs["enhancer"].parameters["reliable_input"] is True      # sim/* and the camera: nothing lost
     assert specs["enhancer"].parameters["idle_timeout"] == graph.MARKER_IDLE_TIMEOUT   # the poses come later
     # a replay is read reliably (bag_play publishes reliably: nothing lost)
     assert specs["panel_pose"].parameters == {"image_transport": "compressed", "camera_info_file": "/d/cam.yaml",
@@ -153,6 +156,7 @@ def test_forward_graph_reads_compressed_images_markers_and_a_camera_file():
     # a recorded pose topic: bag_play waits for the pose reader too, as before
     live = {s.name: s for s in graph.forward_graph(image_transport="compressed", pose_source="markers")}
     assert "reliable_input" not in live["panel_pose"].parameters      # a live camera: sensor-data QoS
+    assert "reliable_input" not in live["enhancer"].parameters and "reliable_output" not in live["sim_camera"].parameters
     plain = {s.name: s for s in graph.forward_graph(bag="/d/t.mcap", image_transport="compressed")}
     assert plain["bag_play"].parameters["wait_for_topics"] == ["/camera/image_raw/compressed", "/panel/pose"]
     assert "panel_pose" not in plain

@@ -53,7 +53,7 @@ def _nodes(ros, small_bag):
 
 READ_ONLY = {
     "sim_camera": {"model_path", "width", "height", "hfov_deg", "queue_size", "effects", "extensible_effects",
-                   "camera_info_file"},
+                   "camera_info_file", "reliable_output"},
     "backward_fit": {"sim_node", "max_dt", "auto_start", "model_path", "exit_when_done", "reliable_input",
                      "image_transport", "camera_info_file"},
     "bag_play": {"bag", "rate", "loop", "start_paused", "delay", "wait_timeout", "clock_hz", "topics",
@@ -69,7 +69,7 @@ def test_every_parameter_has_its_own_descriptor(ros, small_bag):
     try:
         for node in nodes:
             names = sorted(set(node._parameters) - ROS_OWN)
-            assert len(names) == {"sim_camera": 17, "backward_fit": 26, "bag_play": 10}[node.get_name()], names
+            assert len(names) == {"sim_camera": 18, "backward_fit": 26, "bag_play": 10}[node.get_name()], names
             descriptors = node.describe_parameters(names)
             ids = {id(node._descriptors[n]) for n in names}
             assert len(ids) == len(names), f"{node.get_name()}: descriptor objects shared between parameters"
@@ -266,3 +266,30 @@ def test_an_enhancer_interrupted_while_starting_is_destroyed_cleanly(ros):
     node = EnhancerNode.__new__(EnhancerNode)
     Node.__init__(node, "enhancer", context=ros)
     node.destroy_node()
+
+
+@pytest.mark.parametrize("replay", [False, True])
+def test_replay_flags_make_the_forward_topics_reliable(ros, replay):
+    """A live sim_camera is a camera (sensor-data QoS, best effort) and so are the enhancer's readers; in a replay
+    (``reliable_output`` / ``reliable_input``, set by the replay graphs) both are reliable, so that no frame is
+    lost between them."""
+    from rclpy.qos import ReliabilityPolicy
+
+    from uw_sil.nodes.enhancer import EnhancerNode
+    from uw_sil.nodes.sim_camera import SimCameraNode
+
+    small = [Parameter("width", value=SMALL.width), Parameter("height", value=SMALL.height)]
+    sim = SimCameraNode(context=ros, parameter_overrides=small + [Parameter("reliable_output", value=replay)])
+    enh = EnhancerNode(context=ros, parameter_overrides=[Parameter("reliable_input", value=replay)])
+    want = ReliabilityPolicy.RELIABLE if replay else ReliabilityPolicy.BEST_EFFORT
+    try:
+        for topic in ("/sim/depth", "/sim/mask", "/sim/camera_info", "/sim/image_raw"):
+            pubs = sim.get_publishers_info_by_topic(topic)
+            assert [p.qos_profile.reliability for p in pubs] == [want], (topic, pubs)
+        for topic in ("/sim/depth", "/sim/mask", "/sim/camera_info"):
+            subs = [s for s in enh.get_subscriptions_info_by_topic(topic) if s.node_name == "enhancer"]
+            assert [s.qos_profile.reliability for s in subs] == [want], (topic, subs)
+        assert enh._sensor.reliability == want          # the camera subscription, made once the model is known
+    finally:
+        enh.destroy_node()
+        sim.destroy_node()

@@ -2,7 +2,7 @@
 instant (SIL, the paper's forward half: the fitted underwater model inverted on the sim's object pixels),
 or with the image-only baselines DCP / UDCP (:mod:`uw_sil.enhance.sil`).
 
-Subscribes (sensor-data QoS)
+Subscribes (sensor-data QoS; reliably with ``reliable_input``)
     ``camera/image_raw`` (rgb8, bgr8, rgba8, bgra8; grey images are refused), or with ``image_transport:=
     compressed`` ``camera/image_raw/compressed`` (sensor_msgs/CompressedImage, JPEG/PNG, image_transport's
     naming), ``sim/depth`` (32FC1),
@@ -35,7 +35,8 @@ Parameters
     ``pair_queue_size`` (30 images waiting for their sim frame), ``erode_px`` (8), ``idle_timeout`` (0 = run
     until stopped; > 0: exit once no input message (camera image or sim frame: with poses from ``panel_pose`` the
     sim frames come later than the images) has come for that many seconds and the queue is empty: the end of a
-    replayed bag), ``image_transport`` (raw | compressed).
+    replayed bag), ``image_transport`` (raw | compressed), ``reliable_input`` (false: the inputs with
+    sensor-data QoS; true, as in a replayed bag: reliably, so that no frame is lost).
 """
 from __future__ import annotations
 
@@ -150,6 +151,9 @@ class EnhancerNode(Node):
         self.declare_parameter("idle_timeout", 0.0, d(description="> 0: exit after this many seconds without an "
                                                                   "input message, camera image or sim frame (end of "
                                                                   "a replayed bag)", **ro))
+        self.declare_parameter("reliable_input", False, d(
+            description="subscribe to the camera and sim/* reliably (a replayed bag: nothing lost) instead of with "
+                        "sensor-data QoS", **ro))
         self.declare_parameter("image_transport", "raw", d(
             description="camera input: raw (sensor_msgs/Image on camera/image_raw) or compressed (sensor_msgs/"
                         "CompressedImage, JPEG/PNG, on camera/image_raw/compressed)",
@@ -200,8 +204,9 @@ class EnhancerNode(Node):
         self.pub_info = self.create_publisher(CameraInfo, "camera/image_enhanced/camera_info", out_qos)
         self.pub_status = self.create_publisher(String, "~/status",
                                                 QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL))
-        sensor = QoSProfile(depth=10, reliability=qos_profile_sensor_data.reliability,
-                            durability=qos_profile_sensor_data.durability)
+        reliability = (ReliabilityPolicy.RELIABLE if g("reliable_input")
+                       else qos_profile_sensor_data.reliability)
+        sensor = QoSProfile(depth=10, reliability=reliability, durability=qos_profile_sensor_data.durability)
         self._sensor = sensor
         self.create_subscription(Image, "sim/depth", lambda m: self._add(1, m), sensor)
         self.create_subscription(Image, "sim/mask", lambda m: self._add(2, m), sensor)

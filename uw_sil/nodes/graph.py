@@ -74,10 +74,16 @@ def _camera_input(image_transport: str, pose_source: str, camera_info_file: str)
     return params, marker_node
 
 
-def _replayed(marker_node: Optional[NodeSpec]) -> None:
-    """A bag is replayed: panel_pose reads the camera reliably (bag_play publishes reliably; nothing lost)."""
-    if marker_node is not None:
-        marker_node.parameters["reliable_input"] = True
+def _replayed(marker_node: Optional[NodeSpec], sim_camera: Optional[NodeSpec] = None,
+              enhancer: Optional[NodeSpec] = None) -> None:
+    """A bag is replayed: nothing may be lost between the nodes. panel_pose and the enhancer read the camera
+    reliably (bag_play publishes reliably), sim_camera publishes its renders reliably and the enhancer reads
+    them so."""
+    for node in (marker_node, enhancer):
+        if node is not None:
+            node.parameters["reliable_input"] = True
+    if sim_camera is not None and enhancer is not None:
+        sim_camera.parameters["reliable_output"] = True
 
 
 #: Seconds without a new frame after which ``backward_fit`` fits the frames it has (replayed bags).
@@ -213,7 +219,7 @@ def forward_graph(sim_params: Optional[str] = None, bag: Optional[str] = None, r
     if marker_node is not None:
         nodes.append(marker_node)
     if bag:
-        _replayed(marker_node)
+        _replayed(marker_node, *nodes[:2])
         if marker_node is None:
             # without wait_for_nodes bag_play waits for a *matched* reader on each topic: the enhancer on the
             # camera, sim_camera on the poses (both are the only readers in this graph)
@@ -252,6 +258,7 @@ def sil_graph(sim_params: Optional[str] = None, bag: Optional[str] = None, outpu
     nodes.append(_enhancer(method, b_from_frame, idle_exit=False, image_transport=image_transport))
     if bag:
         nodes[0].parameters.update(REPLAY_SIM_CAMERA)
+        _replayed(None, nodes[0], nodes[-1])
         readers = ["backward_fit", "enhancer"] + (["panel_pose"] if pose_source == "markers" else [])
         nodes.append(_bag_play(bag, rate, loop, [IMAGE_TOPICS[image_transport]], readers, start_paused))
     return nodes

@@ -14,7 +14,9 @@ Parameters (live, validated; set with ``ros2 param set`` or the parameter servic
     ``a_r a_g a_b`` attenuation [1/m], ``b_r b_g b_b`` background [0..1], ``rho_f`` fog density [1/m],
     ``fog_mode`` (exp2|exp|none), ``noise_sigma`` (camera noise in grey levels); read-only: ``model_path``, ``width``, ``height``, ``hfov_deg``,
     ``queue_size`` (1: poses arriving while a frame renders replace each other, so the newest is
-    rendered next; raise it to render every pose of a burst, at the cost of latency).
+    rendered next; raise it to render every pose of a burst, at the cost of latency), ``reliable_output``
+    (false: the sim/* topics with sensor-data QoS; true, as in a replayed bag: reliable, keep-last
+    max(10, ``queue_size``), so that no rendered frame is lost).
     ``effects`` (string, default ""): effects of :mod:`uw_sil.sim.effects` added to the model,
     ``"NAME[=mild|strong],..."``; for each listed effect its parameters ``<effect>.<param>`` are declared
     (live, with ranges; initial values: the preset if given, else the effect's defaults; a params file
@@ -31,7 +33,7 @@ import sys
 import numpy as np
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
 from rclpy.node import Node
-from rclpy.qos import qos_profile_sensor_data
+from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import CameraInfo, Image
 
@@ -94,6 +96,10 @@ def _descriptor(name: str) -> ParameterDescriptor:
         "camera_info_file": lambda: ParameterDescriptor(
             description="camera calibration YAML (no distortion) used instead of camera/camera_info (empty: "
                         "subscribe camera/camera_info); read at start", read_only=True),
+        "reliable_output": lambda: ParameterDescriptor(
+            description="publish sim/* reliably, keeping the last max(10, queue_size) frames (a replayed bag: no "
+                        "rendered frame lost; reliable writers serve best-effort readers too) instead of with "
+                        "sensor-data QoS; read at start", read_only=True),
         "queue_size": lambda: ParameterDescriptor(
             description="poses queued while a frame renders (1: the newest replaces older ones); read at start",
             read_only=True, integer_range=_int_range(1, 1000)),
@@ -126,7 +132,7 @@ class SimCameraNode(Node):
             self.declare_parameter(n, defaults[n], _descriptor(n))
         for n, default in (("fog_mode", "exp2"), ("noise_sigma", 0.0), ("model_path", ""), ("width", 640),
                            ("height", 480), ("hfov_deg", 70.0), ("queue_size", 1), ("extensible_effects", ""),
-                           ("camera_info_file", "")):
+                           ("camera_info_file", ""), ("reliable_output", False)):
             self.declare_parameter(n, default, _descriptor(n))
         self._extensible = _effect_list(self.get_parameter("extensible_effects").value, "extensible_effects")
         effects = _descriptor("effects")
@@ -153,11 +159,13 @@ class SimCameraNode(Node):
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
 
-        self.pub_image = self.create_publisher(Image, "sim/image_raw", qos_profile_sensor_data)
-        self.pub_clean = self.create_publisher(Image, "sim/image_clean", qos_profile_sensor_data)
-        self.pub_depth = self.create_publisher(Image, "sim/depth", qos_profile_sensor_data)
-        self.pub_mask = self.create_publisher(Image, "sim/mask", qos_profile_sensor_data)
-        self.pub_info = self.create_publisher(CameraInfo, "sim/camera_info", qos_profile_sensor_data)
+        out = (QoSProfile(depth=max(10, g("queue_size").value), reliability=ReliabilityPolicy.RELIABLE)
+               if g("reliable_output").value else qos_profile_sensor_data)
+        self.pub_image = self.create_publisher(Image, "sim/image_raw", out)
+        self.pub_clean = self.create_publisher(Image, "sim/image_clean", out)
+        self.pub_depth = self.create_publisher(Image, "sim/depth", out)
+        self.pub_mask = self.create_publisher(Image, "sim/mask", out)
+        self.pub_info = self.create_publisher(CameraInfo, "sim/camera_info", out)
         if not camera_file:
             self.create_subscription(CameraInfo, "camera/camera_info", self._on_camera_info, qos_profile_sensor_data)
         # Reliable; keep-last ``queue_size`` (1: when poses come faster than frames render, the newest is
