@@ -698,3 +698,41 @@ def test_residual_evidence_accepts_what_theta_cannot_see():
     assert residual_gain(cur, refit(None)) is None
     assert j.accept(refit(None), cur, 0.003, None)[0] is False
     assert j.accept(refit(None, theta=0.81), cur, 0.003, None)[::2] == (True, "theta")
+
+
+def test_report_frames_are_set_aside_interleaved_over_range():
+    from types import SimpleNamespace
+
+    from uw_sil.fit.diagnose import REPORT_FRAMES, report_count
+    from uw_sil.fit.residuals import set_aside
+
+    frames = [SimpleNamespace(index=i, range_median=4.0 - 0.3 * i, role="fit") for i in range(10)]
+    rest, report = set_aside(frames, 2)
+    assert [f.index for f in report] == [3, 6] and all(f.role == "report" for f in report)
+    assert [f.index for f in rest] == [0, 1, 2, 4, 5, 7, 8, 9]       # the farthest and the nearest stay
+    assert set_aside(frames, 0) == (frames, [])
+    with pytest.raises(ValueError, match="at least 3"):
+        set_aside(frames[:4], 2)
+    # the surplus over k, up to REPORT_FRAMES: a short recording gives the selection everything it has
+    assert [report_count(n, 8) for n in (6, 8, 9, 10, 30)] == [0, 0, 1, 2, REPORT_FRAMES]
+
+
+def test_report_frames_are_seen_by_no_fit_and_no_choice(bags):
+    """The selection with two report frames set aside is the selection on the other frames alone (nothing in it
+    saw them), and the final model is then scored on them: on a strong-vignetting trial it scores above the
+    base model there too."""
+    from uw_sil.fit.diagnose import diagnose_frames, without_times
+    from uw_sil.fit.residuals import load_frames
+
+    kw = dict(effects_allowed=["vignetting"], max_effects=1, processes=1)
+    frames = load_frames(bags["vignetting"], k=6)
+    doc = diagnose_frames(frames, report_frames=2, **kw).to_json()
+    roles = {f["index"]: f["role"] for f in doc["frames"]}
+    report = sorted(i for i, r in roles.items() if r == "report")
+    assert len(report) == 2 and len(roles) == 6
+    alone = diagnose_frames([f for f in frames if f.index not in report], **kw).to_json()
+    for key in ("candidates", "selection", "verdict"):
+        assert without_times(doc[key]) == without_times(alone[key]), key
+    assert alone["base"]["theta_report"] is None and alone["final"]["theta_report"] is None
+    assert doc["verdict"][0]["effect"] == "vignetting"
+    assert doc["final"]["theta_report"] > doc["base"]["theta_report"] + 0.005, (doc["base"], doc["final"])

@@ -48,17 +48,19 @@ def lamp_bag(tmp_path_factory):
 
 def test_the_collector_takes_the_frames_uw_sil_diagnose_takes(lamp_bag):
     """Frames offered one by one (as the node receives them) give the diagnosis the frames `uw-sil diagnose`
-    reads from the bag: the same indices, images and poses."""
+    reads from the bag: the same indices, images and poses, the k of the diagnosis and its report frames."""
     from uw_sil.bags import read_samples
+    from uw_sil.fit.diagnose import REPORT_FRAMES, report_count
     from uw_sil.fit.live import SpreadCollector
     from uw_sil.fit.residuals import load_frames
 
-    offline = load_frames(lamp_bag, k=6)
+    offline = load_frames(lamp_bag, k=6 + REPORT_FRAMES)      # what diagnose_bag(k=6) reads
     col = SpreadCollector(k=6)
     for s in read_samples(lamp_bag):
         assert col.offer(s)
     live = col.frames()
-    assert [f.index for f in live] == [f.index for f in offline] == [0, 2, 4, 7, 9, 11]
+    assert [f.index for f in live] == [f.index for f in offline] == [0, 2, 3, 5, 6, 8, 9, 11]
+    assert report_count(len(live), col.k) == REPORT_FRAMES == 2
     for a, b in zip(live, offline):
         assert np.array_equal(a.image, b.image) and np.array_equal(a.pose, b.pose)
         assert np.array_equal(a.render.range, b.render.range)

@@ -5,6 +5,10 @@ camera info and panel poses, and the scene model; never a ground-truth sidecar):
 
 1. **frames**: up to K frames spread over the recording, each rendered at its recorded pose; split into
    fit frames and *held-out* frames interleaved over range (:func:`uw_sil.fit.residuals.split_frames`).
+   When the recording has more usable frames, up to :data:`REPORT_FRAMES` more are read and set aside as
+   *report* frames (:func:`uw_sil.fit.residuals.set_aside`): no fit and no choice sees them; the base and
+   the final model are scored on them at the end (held-out θ chose among the models, so it flatters the
+   one chosen).
 2. **base fit**: the 7 parameters of paper Eq. 1 with fog, by CMA-ES on θ over the fit frames (from the
    least-squares start of :func:`uw_sil.fit.backward.linear_start`, stopped on convergence), on frames
    box-downsampled to about 320 px wide (θ's FSIMc downsamples 640x480 by 2 anyway).
@@ -40,8 +44,9 @@ JSON schema (``schema_version`` 1)::
                      "round", "model", "margin", "accepted", "doubts", ...}, ...],        # every refit
                                                     # ("flat_bounds": parameters saturated on their bound)
      "selection":  [{"round", "model", "theta_heldout", "tried", "chosen", "time_s"}, ...],
-     "base":       {"theta_train", "theta_heldout", "params", "doubts"},
-     "final":      {"theta_heldout", "effects", "params", "statistics"},
+     "base":       {"theta_train", "theta_heldout", "theta_report", "params", "doubts"},
+     "final":      {"theta_heldout", "theta_report", "effects", "params", "statistics"},
+                                                    # theta_report: θ on the report frames (null: none)
      "mismatch":   {"regions": [{"kind", "name", "pixels", "rms", "mean", "rms_rgb", "share"}, ...]},
      ... extra keys: "noise", "signatures", "frames", "timing", "not_judged", "source"}
 
@@ -59,11 +64,11 @@ import numpy as np
 
 from ..sim.params import RGB_NAMES
 from .diagfit import BASE_SIGMA0, BaseModel, EffectModel, FrameObjective, fit_model, noise_sigmas
-from .residuals import (LABEL_PANEL, ReducedFrame, base_sim, locate, load_frames, reduce_frame,
-                        reduction_factor, residual_maps, split_frames)
+from .residuals import (LABEL_PANEL, ReducedFrame, base_sim, corrected_frame, locate, load_frames, reduce_frame,
+                        reduction_factor, residual_maps, set_aside, split_frames)
 
 __all__ = ["SCHEMA_VERSION", "Diagnosis", "diagnose_frames", "diagnose_bag", "write_diagnosis_yaml",
-           "validate_diagnosis_json", "without_times", "DiagnosisError"]
+           "validate_diagnosis_json", "without_times", "DiagnosisError", "REPORT_FRAMES", "report_count"]
 
 SCHEMA_VERSION = 1
 
@@ -121,6 +126,10 @@ class Diagnosis:
                          f"(held-out θ {self.base['theta_heldout']:.4f}, noise margin {self.noise['margin']:.4f})")
         for v in self.verdict:
             lines.append(f"verdict: {v['effect']} (confidence {v['confidence']:.2f}): {v['explanation']}")
+        if self.final.get("theta_report") is not None:
+            n = sum(f["role"] == "report" for f in self.frames)
+            lines.append(f"on {n} report frame(s) that no fit or choice saw: θ {self.base['theta_report']:.4f} (base) "
+                         f"-> {self.final['theta_report']:.4f} (final model)")
         for c in self.candidates:
             if c.get("elimination"):
                 lines.append(f"  elimination: {c['model']} + {c['effect']:<13s} against the model without it: "
@@ -236,6 +245,11 @@ def _particle_blocks(ctx, sigs: dict, factor: int):
         return None
     return [box_down(m, factor) > 0 for m in particle_masks(ctx)]
 
+
+#: Frames read beyond the K of a diagnosis, when the recording has them, and set aside as report frames.
+REPORT_FRAMES = 2
+#: Seed offset of the simulations scored on the report frames (the held-out frames': 50).
+REPORT_SEED_OFFSET = 100
 
 #: Patience of every optimizer run of the diagnosis (base and candidates alike: a fair comparison).
 PATIENCE = 6
@@ -423,12 +437,21 @@ def _keep_better(earlier: dict, current, r):
         earlier[key] = (current, r)
 
 
+def report_count(n_frames: int, k: int) -> int:
+    """Report frames of a diagnosis of ``k`` frames that got ``n_frames`` usable ones (it asked for
+    ``k +`` :data:`REPORT_FRAMES`): the surplus, so that a short recording gives the selection all it has."""
+    return int(min(REPORT_FRAMES, max(0, n_frames - k)))
+
+
 def diagnose_frames(frames: list, fog: str = "exp2", seed: int = 0, max_effects: int = 4, max_iter: int = 30,
                     popsize: int = 12, progress: Optional[Callable[[str], None]] = None,
                     interrupt: Optional[Callable] = None, effects_allowed=None, source: str = "",
-                    later_candidates: int = LATER_CANDIDATES, processes: Optional[int] = None) -> Diagnosis:
+                    later_candidates: int = LATER_CANDIDATES, processes: Optional[int] = None,
+                    report_frames: int = 0) -> Diagnosis:
     """Diagnose already loaded frames (:func:`uw_sil.fit.residuals.load_frames`); see the module docstring.
 
+    ``report_frames``: frames of ``frames`` set aside (:func:`uw_sil.fit.residuals.set_aside`), only scored
+    with the base and the final model (``theta_report``);
     ``max_effects``: effects in the final model at most (greedy forward selection stops there);
     ``max_iter``/``popsize``: the CMA-ES budget of every fit (base and candidates alike);
     ``effects_allowed``: names of the effects considered (default all with a plug-in);
@@ -449,11 +472,11 @@ def diagnose_frames(frames: list, fog: str = "exp2", seed: int = 0, max_effects:
     with threadpool_limits(limits=1, user_api="blas"), \
             WorkerPool(processes, preload=("uw_sil.fit.diagnose", "uw_sil.fit.judges")).start() as workers:
         return _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, interrupt, effects_allowed,
-                         source, later_candidates, workers)
+                         source, later_candidates, workers, report_frames)
 
 
 def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, interrupt, effects_allowed, source,
-              later_candidates, workers) -> Diagnosis:
+              later_candidates, workers, report_frames=0) -> Diagnosis:
     from ..sim.effects import get_effect
     from ..sim.params import ParamSpace
     from .backward import linear_start
@@ -467,8 +490,10 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
     say = progress or (lambda msg: None)
     t_all = time.perf_counter()
     timing = {}
-    if len(frames) < 3:
-        raise DiagnosisError(f"need at least 3 frames that show the scene model, got {len(frames)}")
+    if len(frames) - max(0, report_frames) < 3:
+        raise DiagnosisError(f"need at least 3 frames that show the scene model besides {report_frames} report "
+                             f"frame(s), got {len(frames)}")
+    frames, report_f = set_aside(frames, report_frames)
     fit_f, held_f = split_frames(frames)
     W = frames[0].image.shape[1]
     f_hi = reduction_factor(W, 320)
@@ -709,15 +734,30 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
                         "params": _effect_flat(final_params, [e]), "doubts": doubts})
     verdict.sort(key=lambda v: -v["confidence"])
     final_theta = float(current.sel_pf.mean())
+    report = {"base": None, "final": None}
+    if report_f:
+        # frames no fit and no choice saw: the base and the final model scored on them (a pose correction the
+        # final model holds is applied to their geometry, as to the others')
+        t0 = time.perf_counter()
+        rep_final = [corrected_frame(f, current.absorbed) for f in report_f] if current.absorbed else list(report_f)
+        job.R_hi.update({id(f): reduce_frame(f, f_hi) for f in report_f + rep_final})
+        report = {"base": job.frame_theta(empty, report_f, base_fit.x[None], REPORT_SEED_OFFSET)[0],
+                  "final": job.frame_theta(current.model, rep_final, np.asarray(current.x, float)[None],
+                                           REPORT_SEED_OFFSET)[0]}
+        say(f"report frames {[f.index for f in report_f]} (no fit or choice saw them): θ "
+            f"{report['base'].mean():.4f} (base) -> {report['final'].mean():.4f} (final model)")
+        timing["report_s"] = time.perf_counter() - t0
     timing["total_s"] = time.perf_counter() - t_all
     not_judged = [{"effect": e, "reason": s.reason} for e, s in sigs.items() if not s.judged]
     final_key = current.name if current.effects else None
     diag = Diagnosis(
         verdict=verdict, candidates=candidates,
         base={"theta_train": float(base_fit.theta_train), "theta_heldout": float(base_sel_pf.mean()),
+              "theta_report": _mean_or_none(report["base"]),
               "residual_heldout": float(np.mean(base_sel_E)),
               "params": dict(base_params["base"]), "doubts": base_doubts(base_params["base"])},
         final={"theta_heldout": final_theta, "residual_heldout": float(np.mean(current.ls_sel_E)),
+               "theta_report": _mean_or_none(report["final"]),
                "effects": final_effects, "params": _flat(final_params),
                "statistics": {a["effect"]: a["refit"].statistic for a in accepted
                               if JUDGES[a["effect"]].kind == "statistic"}},
@@ -727,7 +767,7 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
         noise={"margin": margin_for(np.zeros(len(held_f))), "camera_noise_dn": [list(map(float, n)) for n in nall],
                "camera_noise_dn_full_resolution": _full_res_noise(frames)},
         frames=[{"index": f.index, "role": f.role, "range_m": f.range_median, "coverage": f.coverage}
-                for f in sorted(frames, key=lambda f: f.index)],
+                for f in sorted(frames + report_f, key=lambda f: f.index)],
         timing=timing, final_params=final_params, not_judged=not_judged, source=source, selection=steps,
         figures={"rframes": rall, "sims": sims, "res": res, "sigs": sigs, "prox": prox, "fits": fits,
                  "base_x": base_fit.x, "fog": fog, "held": [R_hi[id(f)] for f in held_f],
@@ -735,13 +775,18 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
     return diag
 
 
+def _mean_or_none(pf) -> Optional[float]:
+    return None if pf is None else float(np.mean(pf))
+
+
 def diagnose_bag(bag, k: int = 8, model=None, image_topic: str = "/camera/image_raw", **kw) -> Diagnosis:
-    """Read ``k`` frames of a recording and diagnose them (see :func:`diagnose_frames`)."""
+    """Read ``k`` frames of a recording (and up to :data:`REPORT_FRAMES` more, the report frames, when it has
+    them) and diagnose them (see :func:`diagnose_frames`)."""
     try:
-        frames = load_frames(bag, k=k, model=model, image_topic=image_topic)
+        frames = load_frames(bag, k=k + REPORT_FRAMES, model=model, image_topic=image_topic)
     except ValueError as e:
         raise DiagnosisError(str(e)) from e
-    return diagnose_frames(frames, source=str(bag), **kw)
+    return diagnose_frames(frames, source=str(bag), report_frames=report_count(len(frames), k), **kw)
 
 
 def write_diagnosis_yaml(path, diag: Diagnosis, node_name: str = "/**", fog: str = "exp2", comment: str = ""):

@@ -67,11 +67,14 @@ class SpreadCollector:
         return True
 
     def frames(self, model=None, renderer=None) -> list:
-        """The ``k`` frames of the diagnosis, rendered at their poses (:func:`frames_from_samples`); ValueError
-        when fewer than 2 show the scene model."""
+        """The ``k`` frames of the diagnosis and up to :data:`uw_sil.fit.diagnose.REPORT_FRAMES` report frames
+        (when enough came; as ``uw-sil diagnose`` reads a bag), rendered at their poses
+        (:func:`frames_from_samples`); ValueError when fewer than 2 show the scene model. Pass
+        ``report_frames=report_count(len(frames), k)`` to the diagnosis."""
+        from .diagnose import REPORT_FRAMES
         from .residuals import frames_from_samples
 
-        return frames_from_samples(self.samples, self.k, model=model, min_coverage=self.min_coverage,
+        return frames_from_samples(self.samples, self.k + REPORT_FRAMES, model=model, min_coverage=self.min_coverage,
                                    renderer=renderer, what=f"the {self.scanned} frames received")
 
 

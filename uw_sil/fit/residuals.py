@@ -40,7 +40,7 @@ class DiagFrame:
     camera: object             # uw_sil.sim.camera.CameraModel
     pose: np.ndarray           # (4, 4) T_cam_panel as recorded
     coverage: float            # fraction of pixels on the model
-    role: str = "fit"          # 'fit' or 'heldout'
+    role: str = "fit"          # 'fit', 'heldout' or 'report' (set_aside)
     part_names: Sequence[str] = ()
 
     @property
@@ -290,6 +290,25 @@ def split_frames(frames: list, heldout_share: float = 0.5) -> tuple:
         (held if j in pos else fit).append(f)
         f.role = "heldout" if j in pos else "fit"
     return sorted(fit, key=lambda f: f.index), sorted(held, key=lambda f: f.index)
+
+
+def set_aside(frames: list, n: int) -> tuple:
+    """Keep ``n`` frames out of the fit and the selection: the *report* frames, on which only the model the
+    selection ended with and the base model are scored (held-out θ chose among the models, so it flatters
+    the one chosen; frames no choice saw do not). Interleaved over range, never the farthest or the nearest
+    (those the fit and the selection need most). Returns ``(rest, report)``; at least 3 frames must remain."""
+    n = int(n)
+    if n <= 0:
+        return list(frames), []
+    if len(frames) - n < 3:
+        raise ValueError(f"{len(frames)} frames cannot spare {n} report frame(s): at least 3 must remain")
+    order = sorted(frames, key=lambda f: -f.range_median)
+    # spacing (len - 1) / (n + 1) > 1: distinct positions
+    pos = set(np.round(np.linspace(0, len(order) - 1, n + 2))[1:-1].astype(int).tolist())
+    report = [f for j, f in enumerate(order) if j in pos]
+    for f in report:
+        f.role = "report"
+    return ([f for f in frames if all(f is not r for r in report)], sorted(report, key=lambda f: f.index))
 
 
 def residual_maps(rframes: Sequence[ReducedFrame], sims: Sequence[np.ndarray]) -> list:

@@ -70,7 +70,7 @@ except ImportError as _e:  # a missing dependency is an installation error, not 
                       f"extra of uw_sil; in a ROS 2 workspace: the diagnostic_msgs package): {_e}") from _e
 
 from ..fit.backward import FrameSelector, fit_frames, write_json_atomic, write_params_yaml
-from ..fit.diagnose import diagnose_frames, write_diagnosis_yaml
+from ..fit.diagnose import diagnose_frames, report_count, write_diagnosis_yaml
 from ..fit.live import SpreadCollector, diagnostic_statuses, extended_parameters, failure_statuses
 from ..bags import Sample
 from ..fit.optimize import METHODS
@@ -525,6 +525,7 @@ class BackwardFitNode(Node):
         options = {n: g(n) for n in ("fog_mode", "seed", "max_iter", "output_yaml", "output_json", "sim_node",
                                      "diagnose_max_effects", "diagnose_effects")}
         options["t_collected"], options["t_last_input"] = t_collected, self._last_input or t_collected
+        options["k"] = collector.k        # the frames beyond it are the report frames
         self._run_cancel = cancel = threading.Event()
         self._stop_asked, self._stop_said = None, False     # (a stop asked of the previous diagnosis is not this one's)
         self.fit_thread = threading.Thread(target=self._diagnose, args=(frames, options, cancel), daemon=True,
@@ -549,7 +550,9 @@ class BackwardFitNode(Node):
     def _diagnose_and_apply(self, frames, options: dict, cancel):
         g = options.__getitem__
         listed = ", ".join(f"#{f.index} ({f.range_median:.2f} m)" for f in frames)
-        self._status(f"diagnosing {len(frames)} frames: {listed}")
+        n_report = report_count(len(frames), g("k"))
+        self._status(f"diagnosing {len(frames) - n_report} frames"
+                     + (f" and setting {n_report} report frame(s) aside" if n_report else "") + f": {listed}")
 
         def interrupt(*_):
             if cancel.is_set() or self._stopping.is_set() or not self.context.ok():
@@ -563,6 +566,7 @@ class BackwardFitNode(Node):
         budget = {"max_iter": g("max_iter")} if g("max_iter") > 0 else {}
         try:
             diag = diagnose_frames(frames, fog=g("fog_mode"), seed=g("seed"), max_effects=g("diagnose_max_effects"),
+                                   report_frames=n_report,
                                    progress=progress, interrupt=interrupt, effects_allowed=effects,
                                    source=f"live: {self.subs[0].topic_name}", **budget)
         except ValueError as e:     # DiagnosisError among them: the frames cannot be diagnosed
