@@ -717,16 +717,20 @@ def test_report_frames_are_set_aside_interleaved_over_range():
     assert [report_count(n, 8) for n in (6, 8, 9, 10, 30)] == [0, 0, 1, 2, REPORT_FRAMES]
 
 
-def test_report_frames_are_seen_by_no_fit_and_no_choice(bags):
+def test_report_frames_are_seen_by_no_fit_and_no_choice(bags, tmp_path):
     """The selection with two report frames set aside is the selection on the other frames alone (nothing in it
     saw them), and the final model is then scored on them: on a strong-vignetting trial it scores above the
-    base model there too."""
+    base model there too. The report says so in words and in its held-out figure."""
     from uw_sil.fit.diagnose import diagnose_frames, without_times
+    from uw_sil.fit.diagnose_report import write_diagnosis_report
     from uw_sil.fit.residuals import load_frames
 
     kw = dict(effects_allowed=["vignetting"], max_effects=1, processes=1)
     frames = load_frames(bags["vignetting"], k=6)
-    doc = diagnose_frames(frames, report_frames=2, **kw).to_json()
+    diag = diagnose_frames(frames, report_frames=2, **kw)
+    doc = diag.to_json()
+    page = write_diagnosis_report(diag, tmp_path).read_text()
+    assert "report frames" in page and (tmp_path / "heldout.png").stat().st_size > 0
     roles = {f["index"]: f["role"] for f in doc["frames"]}
     report = sorted(i for i, r in roles.items() if r == "report")
     assert len(report) == 2 and len(roles) == 6

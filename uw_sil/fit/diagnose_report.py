@@ -175,8 +175,14 @@ def heldout_figure(diag):
     colors = ["grey"] + ["tab:green" if n == F["final_key"] else "tab:blue" for n in names]
     ax.bar(range(len(vals)), vals, color=colors)
     ax.axhline(base.mean() + diag.noise["margin"], color="r", ls="--", lw=0.8, label="base + acceptance margin")
-    lo = min(vals) - 0.02
-    ax.set_ylim(max(0.0, lo), min(1.0, max(vals) + 0.02))
+    rep = (diag.base.get("theta_report"), diag.final.get("theta_report"))
+    if rep[1] is not None:
+        # the report frames: what the base and the final model score where no fit and no choice looked
+        final_at = labels.index(F["final_key"]) if F["final_key"] in labels else 0
+        ax.plot([0, final_at], rep, "kD", ms=6, label=f"report frames ({rep[0]:.4f} -> {rep[1]:.4f})")
+    shown = vals + [v for v in rep if v is not None]
+    lo = min(shown) - 0.02
+    ax.set_ylim(max(0.0, lo), min(1.0, max(shown) + 0.02))
     ax.set_xticks(range(len(vals)))
     ax.set_xticklabels(labels, rotation=20, fontsize=7, ha="right")
     ax.set_title("held-out θ along the selection (green: final model)", fontsize=9)
