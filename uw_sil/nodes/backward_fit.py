@@ -11,7 +11,8 @@ usable frames (:class:`uw_sil.fit.backward.FrameSelector`) are fitted in a worke
 
 With ``diagnose`` (read when a collection starts) the node instead keeps the paired frames until the input
 ends (``idle_timeout``) or ``max_scan`` came, takes ``diagnose_frames`` spread over them as ``uw-sil diagnose``
-does over a bag (:class:`uw_sil.fit.live.SpreadCollector`), and runs the same library call as ``uw-sil
+does over a bag, and up to 2 more set aside as report frames when enough came
+(:class:`uw_sil.fit.live.SpreadCollector`), and runs the same library call as ``uw-sil
 diagnose`` (:func:`uw_sil.fit.diagnose.diagnose_frames`) in its worker thread, each step on ``~/status``. The
 result: ``~/diagnosis`` (std_msgs/String, transient local: the JSON document of ``uw-sil diagnose --json``),
 ``/diagnostics`` (diagnostic_msgs/DiagnosticArray: a summary and one status per effect judged, WARN for an
@@ -121,7 +122,7 @@ def _parameters(sel: dict, fit: dict, diag: dict) -> list:
         ("diagnose", False, "diagnose instead of fitting: the physics the simulation lacks, and the extended model "
          "sent to sim_node (as uw-sil diagnose)" + live, {}),
         ("diagnose_frames", 8, "frames the diagnosis takes, spread over the frames received (uw-sil diagnose "
-         "--frames)" + live, _int_range(3, 100)),
+         "--frames; up to 2 more, when enough came, are set aside as report frames)" + live, _int_range(3, 100)),
         ("diagnose_max_effects", diag["max_effects"], "effects in the extended model at most (uw-sil diagnose "
          "--max-effects)" + live, _int_range(1, 10)),
         ("diagnose_effects", "", "effects the diagnosis considers, comma-separated (empty: every effect it can "
