@@ -12,7 +12,7 @@ def test_forward_graph_with_a_bag_ends_with_the_enhancer():
     assert specs["sim_camera"].parameters == {**graph.REPLAY_SIM_CAMERA, "reliable_output": True}
     e = specs["enhancer"]
     assert e.required and e.parameters["idle_timeout"] == graph.IDLE_TIMEOUT and e.parameters["method"] == "dcp"
-    assert e.parameters["reliable_input"] is True
+    assert e.parameters["reliable_input"] is True and e.parameters["queue_size"] == graph.REPLAY_ENHANCER_QUEUE
     play = specs["bag_play"].parameters
     assert play["wait_for_topics"] == ["/camera/image_raw", "/panel/pose"] and "wait_for_nodes" not in play
     assert not specs["bag_play"].required

@@ -148,6 +148,7 @@ def test_forward_graph_reads_compressed_images_markers_and_a_camera_file():
                                               "reliable_output": True}
     assert specs["enhancer"].parameters["image_transport"] == "compressed" and specs["enhancer"].required
     assert specs["enhancer"].parameters["reliable_input"] is True      # sim/* and the camera: nothing lost
+    assert specs["enhancer"].parameters["queue_size"] == graph.REPLAY_ENHANCER_QUEUE
     assert specs["enhancer"].parameters["idle_timeout"] == graph.MARKER_IDLE_TIMEOUT   # the poses come later
     # a replay is read reliably (bag_play publishes reliably: nothing lost)
     assert specs["panel_pose"].parameters == {"image_transport": "compressed", "camera_info_file": "/d/cam.yaml",
@@ -159,6 +160,7 @@ def test_forward_graph_reads_compressed_images_markers_and_a_camera_file():
     live = {s.name: s for s in graph.forward_graph(image_transport="compressed", pose_source="markers")}
     assert "reliable_input" not in live["panel_pose"].parameters      # a live camera: sensor-data QoS
     assert "reliable_input" not in live["enhancer"].parameters and "reliable_output" not in live["sim_camera"].parameters
+    assert "queue_size" not in live["enhancer"].parameters          # a live camera: the queue of 2, for latency
     plain = {s.name: s for s in graph.forward_graph(bag="/d/t.mcap", image_transport="compressed")}
     assert plain["bag_play"].parameters["wait_for_topics"] == ["/camera/image_raw/compressed", "/panel/pose"]
     assert "panel_pose" not in plain
