@@ -23,6 +23,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from uw_sil.campaign import find_dives, run_campaign  # noqa: E402
+from uw_sil.cli import main as uw_sil_main  # noqa: E402
 
 
 def _peak_rss_mb() -> float:
@@ -48,13 +49,14 @@ def main():
         opts = {"frames": 2, "stride": 2, "optimizer": "cmaes", "max_iter": a.max_iter, "seed": 0, "report": False}
         times = {}
         t0 = time.perf_counter()
-        run_campaign(dives, tmp / "local1t", ["fit"], opts, jobs=1, threads_per_dive=1)
+        run_campaign(dives, tmp / "local1t", ["fit"], opts, jobs=1, threads_per_dive=1, command=uw_sil_main)
         times[("local", "1t")] = time.perf_counter() - t0
         print(f"local pool, 1 worker, 1 thread per dive: {times[('local', '1t')]:.1f} s for {len(dives)} dives",
               flush=True)
         for jobs in (1, 2):
             t0 = time.perf_counter()
-            rows = run_campaign(dives, tmp / f"local{jobs}", ["fit"], opts, jobs=jobs, threads_per_dive=max(1, (os.cpu_count() or 1) // jobs))
+            rows = run_campaign(dives, tmp / f"local{jobs}", ["fit"], opts, jobs=jobs,
+                                threads_per_dive=max(1, (os.cpu_count() or 1) // jobs), command=uw_sil_main)
             times[("local", jobs)] = time.perf_counter() - t0
             assert all(r["status"] == "ok" for r in rows), rows
             print(f"local pool, {jobs} worker(s): {times[('local', jobs)]:.1f} s for {len(dives)} dives", flush=True)
@@ -69,7 +71,7 @@ def main():
                         distributed.Client(cl) as client:
                     t0 = time.perf_counter()
                     rows = run_campaign(dives, tmp / f"dask{jobs}", ["fit"], opts, executor=client.get_executor(),
-                                        threads_per_dive=max(1, (os.cpu_count() or 1) // jobs))
+                                        threads_per_dive=max(1, (os.cpu_count() or 1) // jobs), command=uw_sil_main)
                     times[("dask", jobs)] = time.perf_counter() - t0
                 assert all(r["status"] == "ok" for r in rows), rows
                 print(f"dask LocalCluster, {jobs} worker(s): {times[('dask', jobs)]:.1f} s", flush=True)

@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 
 from uw_sil.campaign import Dive, find_dives, run_campaign
+from uw_sil.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "PYOPENGL_PLATFORM": "osmesa"}
@@ -81,21 +82,22 @@ def test_dask_gives_the_same_table_and_a_rerun_skips(dives, local_run, tmp_path)
     found = find_dives(str(dives / "*" / "*.mcap"))
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cl, \
             distributed.Client(cl) as client:
-        dask_rows = run_campaign(found, tmp_path / "dask", ["fit"], OPTIONS, executor=client.get_executor())
+        dask_rows = run_campaign(found, tmp_path / "dask", ["fit"], OPTIONS, executor=client.get_executor(),
+                                     command=main)
     assert _stable(dask_rows) == _stable(local)          # 2 θ threads per dive there, 1 in the local pool
     # Dask's nanny sets MALLOC_TRIM_THRESHOLD_ (fits 2.3x slower): the worker raised glibc's thresholds
     assert "MALLOC_TRIM_THRESHOLD_ is set" in (tmp_path / "dask" / "dive1" / "log.txt").read_text()
 
-    again = run_campaign(found, res, ["fit"], OPTIONS, jobs=1)
+    again = run_campaign(found, res, ["fit"], OPTIONS, jobs=1, command=main)
     assert all(r["skipped"] for r in again)                  # the broken dive too: it failed with a reason
     assert _stable(again) == _stable(local)
-    retried = run_campaign(found, res, ["fit"], OPTIONS, jobs=1, retry_failed=True)
+    retried = run_campaign(found, res, ["fit"], OPTIONS, jobs=1, retry_failed=True, command=main)
     assert [r["skipped"] for r in retried] == [False, True, True]
 
 
 def test_bad_requests_are_refused(tmp_path):
     with pytest.raises(ValueError, match="--steps must be some of"):
-        run_campaign([Dive("a", "a.mcap")], tmp_path, ["fit", "paint"], OPTIONS)
+        run_campaign([Dive("a", "a.mcap")], tmp_path, ["fit", "paint"], OPTIONS, command=main)
     with pytest.raises(ValueError, match="--executor must be"):
         from uw_sil.campaign import make_executor
 

@@ -8,8 +8,9 @@ A campaign is a folder of dives (one ROS 2 bag each) and a results folder::
     results/<dive>/row.json                           the dive's row, written last (its "done" marker)
     results/campaign.parquet, results/campaign.csv    one row per dive
 
-Each dive runs its steps as the ``uw-sil`` command line does (:func:`uw_sil.cli.main` with the step's
-arguments, in a worker process), so a campaign computes exactly what single commands compute; its
+Each dive runs its steps as the ``uw-sil`` command line does (the ``command`` its caller passes,
+:func:`uw_sil.cli.main`, with the step's arguments, in a worker process: this module does not import the
+command line it serves), so a campaign computes exactly what single commands compute; its
 table is read back from the JSON files the steps wrote. Work is handed to any
 :class:`concurrent.futures.Executor`: by default a process pool with the ``spawn`` start method (a
 process that holds an OpenGL context must not be forked), or a Dask cluster
@@ -143,14 +144,17 @@ def _row(dive: Dive, steps, out: Path) -> dict:
 
 
 def run_dive(dive: Dive, out_root: str, steps: Sequence[str], options: dict, force: bool = False,
-             retry_failed: bool = False, threads: Optional[int] = None) -> dict:
+             retry_failed: bool = False, threads: Optional[int] = None, *,
+             command: Callable[[list], int]) -> dict:
     """Run the steps of one dive (in a worker process) and return its row; never raises for a dive's fault.
+
+    ``command(argv)`` runs one step as the ``uw-sil`` command line does and returns its exit status
+    (:func:`uw_sil.cli.main`; a module-level function, so that it reaches the worker by name).
 
     Output of the commands goes to ``<out_root>/<dive>/log.txt``; the row is written last to
     ``row.json`` (atomically), which marks the dive complete for a later resume. ``threads`` sets this
     worker process's thread budget (``UW_SIL_THREADS``); results do not depend on it.
     """
-    from . import cli
     from ._shared.process import ENV, prefer_array_malloc
 
     if threads is not None:
@@ -175,7 +179,7 @@ def run_dive(dive: Dive, out_root: str, steps: Sequence[str], options: dict, for
         print(f"$ uw-sil {' '.join(argv)}", file=log)
         try:
             with contextlib.redirect_stdout(log), contextlib.redirect_stderr(log):
-                code = cli.main(argv)
+                code = command(argv)
         except SystemExit as e:          # argparse: unknown option or command
             code = e.code if isinstance(e.code, int) else 2
         except Exception as e:           # a bug in a step: the dive fails, the campaign goes on
@@ -220,8 +224,10 @@ def make_executor(spec: str = "local", jobs: Optional[int] = None):
 def run_campaign(dives: Sequence[Dive], out_root, steps: Sequence[str] = ("fit",), options: Optional[dict] = None,
                  executor: Optional[Executor] = None, jobs: Optional[int] = None, force: bool = False,
                  retry_failed: bool = False, progress: Optional[Callable[[int, int, dict], None]] = None,
-                 threads_per_dive: Optional[int] = None) -> list[dict]:
+                 threads_per_dive: Optional[int] = None, *, command: Callable[[list], int]) -> list[dict]:
     """Run every dive on ``executor`` (default: a local spawn process pool), write the table, return the rows.
+
+    ``command``: what runs each step, :func:`uw_sil.cli.main` (see :func:`run_dive`).
 
     ``progress(done, total, row)`` is called in this process as each dive finishes. ``threads_per_dive``:
     threads each dive may use (default: the cores divided among the local pool's workers; with a given
@@ -244,7 +250,8 @@ def run_campaign(dives: Sequence[Dive], out_root, steps: Sequence[str] = ("fit",
         threads_per_dive = max(1, cores // max(1, min(jobs or cores, len(dives) or 1)))
     rows = {}
     try:
-        futures = {ex.submit(run_dive, d, str(out_root), steps, options, force, retry_failed, threads_per_dive): d
+        futures = {ex.submit(run_dive, d, str(out_root), steps, options, force, retry_failed, threads_per_dive,
+                             command=command): d
                    for d in dives}
         for n, fut in enumerate(as_completed(futures), 1):
             d = futures[fut]

@@ -640,7 +640,7 @@ def cmd_batch(args) -> int:
     try:
         rows = run_campaign(dives, args.out, steps, options, executor=executor, jobs=args.jobs, force=args.force,
                             retry_failed=args.retry_failed, progress=progress,
-                            threads_per_dive=args.threads_per_dive)
+                            threads_per_dive=args.threads_per_dive, command=main)
     finally:
         bar.close()
         if close:
