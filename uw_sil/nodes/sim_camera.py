@@ -15,8 +15,8 @@ Parameters (live, validated; set with ``ros2 param set`` or the parameter servic
     ``fog_mode`` (exp2|exp|none), ``noise_sigma`` (camera noise in grey levels); read-only: ``model_path``, ``width``, ``height``, ``hfov_deg``,
     ``queue_size`` (1: poses arriving while a frame renders replace each other, so the newest is
     rendered next; raise it to render every pose of a burst, at the cost of latency), ``reliable_output``
-    (false: the sim/* topics with sensor-data QoS; true, as in a replayed bag: reliable, keep-last
-    max(10, ``queue_size``), so that no rendered frame is lost).
+    (false: the sim/* topics with sensor-data QoS; true, as in a replayed bag: reliable, keep-last 10,
+    so that no rendered frame is lost).
     ``effects`` (string, default ""): effects of :mod:`uw_sil.sim.effects` added to the model,
     ``"NAME[=mild|strong],..."``; for each listed effect its parameters ``<effect>.<param>`` are declared
     (live, with ranges; initial values: the preset if given, else the effect's defaults; a params file
@@ -97,7 +97,7 @@ def _descriptor(name: str) -> ParameterDescriptor:
             description="camera calibration YAML (no distortion) used instead of camera/camera_info (empty: "
                         "subscribe camera/camera_info); read at start", read_only=True),
         "reliable_output": lambda: ParameterDescriptor(
-            description="publish sim/* reliably, keeping the last max(10, queue_size) frames (a replayed bag: no "
+            description="publish sim/* reliably, keeping the last 10 frames (a replayed bag: no "
                         "rendered frame lost; reliable writers serve best-effort readers too) instead of with "
                         "sensor-data QoS; read at start", read_only=True),
         "queue_size": lambda: ParameterDescriptor(
@@ -159,7 +159,9 @@ class SimCameraNode(Node):
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
 
-        out = (QoSProfile(depth=max(10, g("queue_size").value), reliability=ReliabilityPolicy.RELIABLE)
+        # reliable: keep-last 10, as the enhancer's readers (a deeper history would hold up to 3.3 MB per frame
+        # of 640x480 renders in this process; the readers only pair and queue in their callbacks)
+        out = (QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
                if g("reliable_output").value else qos_profile_sensor_data)
         self.pub_image = self.create_publisher(Image, "sim/image_raw", out)
         self.pub_clean = self.create_publisher(Image, "sim/image_clean", out)
