@@ -740,7 +740,7 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
         # final model holds is applied to their geometry, as to the others')
         t0 = time.perf_counter()
         rep_final = [corrected_frame(f, current.absorbed) for f in report_f] if current.absorbed else list(report_f)
-        job.R_hi.update({id(f): reduce_frame(f, f_hi) for f in report_f + rep_final})
+        job.R_hi.update({id(f): reduce_frame(f, f_hi) for f in {id(f): f for f in report_f + rep_final}.values()})
         report = {"base": job.frame_theta(empty, report_f, base_fit.x[None], REPORT_SEED_OFFSET)[0],
                   "final": job.frame_theta(current.model, rep_final, np.asarray(current.x, float)[None],
                                            REPORT_SEED_OFFSET)[0]}
