@@ -5,7 +5,9 @@ or the new one, never half) and the graph restarts; shared-memory segments of ki
 pile up in /dev/shm. (The enhancer's fault test joins once that node exists.)"""
 import fcntl
 import os
+import re
 import signal
+import subprocess
 import sys
 import time
 import warnings
@@ -144,6 +146,37 @@ def test_a_node_stopped_while_it_imports_ends_cleanly(sig):
             assert "[backward_fit]" not in p.text, "the node had started: the signal did not come during the import"
     finally:
         p.stop()
+
+
+STUCK_TEARDOWN = """
+import re, time
+from uw_sil.nodes import teardown_deadline
+with teardown_deadline({deadline}, armed={armed}):
+    {body}
+time.sleep({after})
+print("ended", flush=True)
+"""
+
+
+@pytest.mark.parametrize("case", [
+    # a C call holding the GIL past the deadline (catastrophic regex backtracking: minutes; the middleware's
+    # participant deletion did this to sim_camera once): stacks on stderr, exit code 1
+    dict(deadline=1.0, armed=True, body="re.match(r'(a+)+b', 'a' * 34)", after=0, code=1, dumped=True),
+    # a teardown that ends in time: the timer is cancelled (the sleep after it outlasts the deadline)
+    dict(deadline=1.0, armed=True, body="pass", after=2.0, code=0, dumped=False),
+    # not armed (a node run inside a test): nothing ends the process
+    dict(deadline=0.2, armed=False, body="time.sleep(1.0)", after=0, code=0, dumped=False),
+], ids=["stuck", "in-time", "unarmed"])
+def test_a_stuck_teardown_ends_the_process_with_its_stacks(case):
+    """A node process whose teardown never returns (rclpy's ``destroy_node`` spinning inside the middleware
+    with the GIL held) must still end: past the deadline the stacks go to stderr and the exit code is 1."""
+    code = STUCK_TEARDOWN.format(**{k: case[k] for k in ("deadline", "armed", "body", "after")})
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == case["code"], done
+    assert ("Timeout (0:00:01)!" in done.stderr) == case["dumped"], done.stderr
+    assert ("ended" in done.stdout) == (not case["dumped"]), done
+    if case["dumped"]:
+        assert re.search(r'File "<string>", line 5 in <module>', done.stderr), done.stderr
 
 
 @pytest.mark.slow

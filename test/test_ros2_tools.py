@@ -402,8 +402,10 @@ def test_ros2_run_sim_camera_and_ros2_param(ws, fit_yaml):
         if probe is not None:
             probe.close()
         node.signal(signal.SIGINT)
-        took = node.wait_group(10)
-        node.stop()
+        try:
+            took = node.wait_group(10)
+        finally:
+            node.stop()              # a node that did not end must not outlive the test
     assert node.popen.returncode == 0 and took < 5, node.text
     assert_clean_output(node.text, "ros2 run sim_camera")
 
@@ -488,8 +490,10 @@ def test_ros2_tools_on_the_running_graph(ws, trial, tmp_path):
             c.stop()
         # Ctrl-C in the terminal: SIGINT to the process group; ros2 launch forwards another one to each node
         launch.signal(signal.SIGINT)
-        took = launch.wait_group(15)
-        launch.stop()
+        try:
+            took = launch.wait_group(15)
+        finally:
+            launch.stop()            # a node that did not end must not outlive the test
     text = launch.text
     assert launch.popen.returncode == 0, text
     for node in NODES:

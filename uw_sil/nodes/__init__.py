@@ -8,6 +8,7 @@ No algorithm lives here: nodes call :mod:`uw_sil.sim`, :mod:`uw_sil.fit`, :mod:`
 """
 from __future__ import annotations
 
+import faulthandler
 import importlib
 import os
 import re
@@ -166,6 +167,8 @@ def run_node(make_node: Callable, spin: Optional[Callable] = None, args=None, na
     destroyed, rclpy shut down, which removes its Fast DDS shared-memory segments; renderer closed; files
     are written atomically), and the interpreter's own finalization took another 1.3-1.5 s per node
     here, which made a graph need more than 5 s to stop. Otherwise the exit code is returned.
+    The executables' teardown is bounded (:func:`teardown_deadline`): one stuck in the middleware ends
+    the process after :data:`TEARDOWN_DEADLINE` with its stacks on stderr and exit code 1.
     """
     if help_requested(args):
         print(f"usage: ros2 run uw_sil {name or 'NODE'} [--ros-args -p NAME:=VALUE | --params-file FILE | "
@@ -173,7 +176,7 @@ def run_node(make_node: Callable, spin: Optional[Callable] = None, args=None, na
         return 0
     _handle_stop_signals()
     try:
-        code = _run_node(make_node, spin, args, name, user_errors)
+        code = _run_node(make_node, spin, args, name, user_errors, exit_process)
     except KeyboardInterrupt:                       # a signal in the few instructions around the clean-up
         code = 0
     finally:
@@ -248,7 +251,41 @@ def _await_signal_shutdown(rclpy, timeout: float = SIGNAL_SHUTDOWN_WAIT):
         time.sleep(0.002)
 
 
-def _run_node(make_node, spin, args, name, user_errors) -> int:
+#: Longest a node executable's teardown (``destroy_node``, ``rclpy.try_shutdown``) may take. rclpy's part
+#: takes well under 1 s; the longest wait of our own in a ``destroy_node`` is the enhancer's for its
+#: worker's last frame (5 s), the backward fit's for its fit thread is 3 s.
+TEARDOWN_DEADLINE = 8.0
+
+@contextmanager
+def teardown_deadline(seconds: float = TEARDOWN_DEADLINE, armed: bool = True):
+    """Bound the teardown of a node process: past ``seconds`` faulthandler writes ``Timeout (0:00:08)!`` and
+    every thread's stack to stderr (the main thread's shows where the teardown stuck), and the process
+    exits with code 1.
+
+    Why: once (a fresh-clone test run, quiet machine) ``sim_camera`` never ended after Ctrl-C. Its main
+    thread was inside rclpy's ``Node.destroy_node`` (``destroy_when_not_in_use``: the middleware deleting
+    the node) at 94 % CPU, still 7 minutes later. That call holds the GIL, so no Python thread could end
+    it; :func:`faulthandler.dump_traceback_later` runs its timer in a C thread that needs no GIL.
+    Exit code 1, not 0: the teardown did not finish (Fast DDS may have left shared-memory segments, which
+    the next node start removes, :func:`clean_stale_shm_segments`).
+    Not armed when ``armed`` is False: a node run inside another program (a test) must not end it.
+    """
+    if not armed:
+        yield
+        return
+    for stream in (sys.stdout, sys.stderr):   # what was logged before comes first
+        try:
+            stream.flush()
+        except (OSError, ValueError):
+            pass
+    faulthandler.dump_traceback_later(seconds, exit=True, file=sys.__stderr__)
+    try:
+        yield
+    finally:
+        faulthandler.cancel_dump_traceback_later()
+
+
+def _run_node(make_node, spin, args, name, user_errors, exit_process: bool = True) -> int:
     profile = use_fastdds_profile()
     stale = clean_stale_shm_segments()
     import rclpy
@@ -286,9 +323,10 @@ def _run_node(make_node, spin, args, name, user_errors) -> int:
         if _stop_signals:
             _await_signal_shutdown(rclpy)
         try:
-            if node is not None:
-                node.destroy_node()
-            rclpy.try_shutdown()
+            with teardown_deadline(armed=exit_process):
+                if node is not None:
+                    node.destroy_node()
+                rclpy.try_shutdown()
         except KeyboardInterrupt:   # between rclpy's handlers and ours: the clean-up is done enough
             pass
         _ignore_signals()           # rclpy.try_shutdown restored the handlers it found at init
