@@ -360,9 +360,9 @@ def _run_node(make_node, spin, args, name, user_errors, exit_process: bool = Tru
             raise
     finally:
         _ignore_signals()
-        _settle_signals(rclpy)
         try:
             with teardown_deadline(armed=exit_process):
+                _settle_signals(rclpy)
                 if node is not None:
                     node.destroy_node()
                 rclpy.try_shutdown()
