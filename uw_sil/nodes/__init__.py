@@ -271,6 +271,7 @@ def _await_signal_shutdown(rclpy, timeout: float = SIGNAL_SHUTDOWN_WAIT):
 #: worker's last frame (5 s), the backward fit's for its fit thread is 3 s.
 TEARDOWN_DEADLINE = 8.0
 
+
 @contextmanager
 def teardown_deadline(seconds: float = TEARDOWN_DEADLINE, armed: bool = True):
     """Bound the teardown of a node process: past ``seconds`` faulthandler writes ``Timeout (0:00:08)!`` and
