@@ -102,6 +102,15 @@ def ros_env(domain: int, base: Optional[dict] = None, **extra) -> dict:
     return env
 
 
+def _is_node_process(pid: int) -> bool:
+    """A uw_sil node process (``python -m uw_sil.nodes.entry NODE``, or a console script in ``lib/uw_sil``)."""
+    try:
+        cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+    except OSError:
+        return False
+    return "uw_sil.nodes" in cmd or "/lib/uw_sil/" in cmd
+
+
 def group_pids(pgid: int) -> list:
     """Live processes of process group ``pgid`` (zombies excluded)."""
     pids = []
@@ -211,15 +220,36 @@ class Proc:
             pass
 
     def wait_group(self, timeout: float) -> float:
-        """Wait until every process of the group has ended; seconds it took (AssertionError after timeout)."""
+        """Wait until every process of the group has ended; seconds it took (AssertionError after timeout,
+        with the Python stacks of the node processes still running, :meth:`node_stacks`)."""
         t0 = time.monotonic()
         while group_pids(self.pgid) or self.popen.poll() is None:
             if time.monotonic() - t0 > timeout:
-                raise AssertionError(f"{self.name}: processes {group_pids(self.pgid)} still running after "
-                                     f"{timeout:g} s\n{self.tail()}")
+                left = group_pids(self.pgid)
+                raise AssertionError(f"{self.name}: processes {left} still running after {timeout:g} s\n"
+                                     f"{self.tail()}{self.node_stacks(left)}")
             time.sleep(0.02)
         self._reader.join(timeout=5)
         return time.monotonic() - t0
+
+    def node_stacks(self, pids, wait: float = 2.0) -> str:
+        """Ask the node processes among ``pids`` for every thread's Python stack (SIGUSR1: node processes
+        register it with faulthandler, which answers from a C handler even while a call holds the GIL) and
+        return what they wrote. Only processes of ours are asked: SIGUSR1 ends a process that has no handler
+        for it (a launcher)."""
+        nodes = [pid for pid in pids if _is_node_process(pid)]
+        if not nodes:
+            return ""
+        seen = len(self.lines)
+        for pid in nodes:
+            try:
+                os.kill(pid, signal.SIGUSR1)
+            except ProcessLookupError:
+                pass
+        time.sleep(wait)           # the reader thread takes the dumps from the pipe meanwhile
+        dumped = self.lines[seen:][:400]
+        return (f"\n--- stacks of the node processes {nodes} still running (SIGUSR1):\n" + "\n".join(dumped)
+                if dumped else f"\n--- node processes {nodes}: no stacks within {wait:g} s")
 
     def stop(self, timeout: float = 15.0):
         """Ctrl-C, then SIGKILL for whatever is left: nothing outlives a test."""

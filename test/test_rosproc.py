@@ -46,3 +46,26 @@ def test_failure_messages_carry_each_nodes_log_tail():
     assert "the one line that matters" in text and "done: FAILED: quiet" in text
     assert "line 99" in text and "line 59" not in text        # the last 40 of the chatty node
     assert "-- [chatty] last 40 of 100:" in text
+
+
+def test_a_node_that_does_not_stop_in_time_shows_its_stacks():
+    """When a node process outlives the wait for it, the failure carries every thread's Python stack (asked
+    for with SIGUSR1, which node processes hand to faulthandler), not only its last log lines: where it hangs.
+    The hanging function here is named so that its frame can be found in the message."""
+    script = ("import threading, uw_sil.nodes as un\n"
+              "un._report_crashes()\n"
+              "def stuck_in_teardown():\n"
+              "    print('ready', flush=True)\n"
+              "    threading.Event().wait()\n"
+              "stuck_in_teardown()\n")
+    p = Proc([sys.executable, "-c", script], env=None, name="stuck node")
+    try:
+        p.wait_for("ready", timeout=60)
+        with pytest.raises(AssertionError) as e:
+            p.wait_group(0.2)
+        text = str(e.value)
+        assert "stacks of the node processes" in text and "most recent call first" in text, text
+        assert "in stuck_in_teardown" in text, text
+        assert p.popen.poll() is None, "SIGUSR1 ended the process: the handler was not registered"
+    finally:
+        p.stop(timeout=5)
