@@ -225,11 +225,10 @@ def _report_crashes():
     renderer) writes every thread's Python stack to stderr first (:func:`faulthandler.enable`), which the
     launcher shows; it still dies of the signal. Without it the launch log said only "killed by SIGSEGV"
     (``bag_play`` at Ctrl-C, once in 160 stops of the backward graph here)."""
-    if not faulthandler.is_enabled():
-        faulthandler.enable(file=sys.__stderr__, all_threads=True)
-        # and on request: SIGUSR1 writes the stacks of a node that seems stuck (the tests ask a node that did
-        # not stop in time; by hand: kill -USR1 PID); answered from a C handler, also while a call holds the GIL
-        faulthandler.register(signal.SIGUSR1, file=sys.__stderr__, all_threads=True, chain=False)
+    faulthandler.enable(file=sys.__stderr__, all_threads=True)
+    # and on request: SIGUSR1 writes the stacks of a node that seems stuck (the tests ask a node that did not
+    # stop in time; by hand: kill -USR1 PID); answered from a C handler, also while a call holds the GIL
+    faulthandler.register(signal.SIGUSR1, file=sys.__stderr__, all_threads=True, chain=False)
 
 
 def _pass_over_interrupted_futures():
