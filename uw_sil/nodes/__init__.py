@@ -188,11 +188,7 @@ def run_node(make_node: Callable, spin: Optional[Callable] = None, args=None, na
     finally:
         _ignore_signals()
     if exit_process:
-        for stream in (sys.stdout, sys.stderr):
-            try:
-                stream.flush()
-            except (OSError, ValueError):
-                pass
+        _flush_output()
         os._exit(code)
     return code
 
@@ -218,6 +214,15 @@ def start_node(module: str) -> int:
         _ignore_signals()
         return 0
     return node_module.main()
+
+
+def _flush_output():
+    """Flush stdout and stderr, whatever state they are in (closed, a broken pipe)."""
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):
+            pass
 
 
 def _report_crashes():
@@ -314,11 +319,7 @@ def teardown_deadline(seconds: float = TEARDOWN_DEADLINE, armed: bool = True):
     if not armed:
         yield
         return
-    for stream in (sys.stdout, sys.stderr):   # what was logged before comes first
-        try:
-            stream.flush()
-        except (OSError, ValueError):
-            pass
+    _flush_output()                           # what was logged before comes first
     faulthandler.dump_traceback_later(seconds, exit=True, file=sys.__stderr__)
     try:
         yield
