@@ -18,7 +18,10 @@ Multi-effect trials (``--multi N``: N per generator of ``--multi-gens``): 3-4 ef
 (lamps in about three quarters of the own / foreign ones, always in the physical ones), each with an
 effect-free control of the same generator and seed. Reported per generator and overall: per-effect recall
 and precision, exact-set matches, and the held-out θ of the final model against the one the control's
-final model reaches (the goal: within 0.01).
+final model reaches (the goal: within 0.01). Each of them also gets a twin (the same dive with other draws of
+what is new in every frame: particles, noise), whose held-out θ against the recording is the ceiling no model
+can pass: noise and particles lower it, so a final model is also compared by its distance below its ceiling
+with the control's (``--no-twins`` leaves them out).
 
 Results are appended to ``results.jsonl`` in ``--out-dir`` (a rerun skips trials already there). Last
 line (top1 / false_alarm: own generator single effects / controls, as before; multi_*: micro-averaged over
@@ -145,6 +148,30 @@ def diagnose_kwargs(args) -> dict:
     return {"max_candidates": args.max_candidates} if accepts else {}
 
 
+def twin_ceiling(bag, twin_bag, doc, k: int) -> list:
+    """Held-out θ of the trial's twin (the same dive with other draws of what is new in every frame: particles,
+    noise) against the recording, per held-out frame of the diagnosis ``doc``: the θ of a simulation that
+    reproduced the generator exactly but for its draws, the most any model can reach on these frames. Scored
+    as the diagnosis scores its models (the same frames, reduction and θ references)."""
+    import dataclasses
+
+    from uw_sil.bags import read_samples
+    from uw_sil.fit.diagfit import theta_reference
+    from uw_sil.fit.residuals import box_down, load_frames, reduce_frame, reduction_factor
+
+    held = [f["index"] for f in doc["frames"] if f["role"] == "heldout"]
+    frames = {f.index: f for f in load_frames(bag, k=k) if f.index in held}
+    twin = {i: s.image for i, s in enumerate(read_samples(twin_bag)) if i in held}
+    out = []
+    for i in held:
+        f = frames[i]
+        fac = reduction_factor(f.image.shape[1], 320)
+        ref = theta_reference(reduce_frame(f, fac))
+        tw = box_down(dataclasses.replace(f, image=np.ascontiguousarray(twin[i])).image, fac)
+        out.append(float(ref.score(np.asarray(tw, np.float32)[None])[0]))
+    return out
+
+
 def run_trial(t, args) -> dict:
     from uw_sil.bags.synth import synthesize_trial
     from uw_sil.fit.diagnose import diagnose_bag
@@ -152,30 +179,38 @@ def run_trial(t, args) -> dict:
 
     with tempfile.TemporaryDirectory(prefix="uw_sil-concealed-") as d:
         bag = os.path.join(d, "trial.mcap")
+        # multi-effect trials and their controls: also the twin (other draws), for the ceiling of θ
+        twin = os.path.join(d, "twin.mcap") if t.get("multi") and not args.no_twins else None
         t0 = time.perf_counter()
         if t["gen"] == "own":
-            cam = CameraModel.from_fov(args.width, args.width * 3 // 4, 70.0)
-            synthesize_trial(bag, n_frames=args.frames, seed=t["seed"], params=own_params(t["seed"]), camera=cam,
-                             effects=dict(t["effects"]) or None, overwrite=True)
-            # the truth sidecar is next to the bag: move it out of reach of the diagnosis
             from uw_sil.bags.synth import truth_path
 
-            tp = truth_path(bag)
-            if tp.exists():
-                tp.unlink()
+            cam = CameraModel.from_fov(args.width, args.width * 3 // 4, 70.0)
+            for out, draws in ((bag, None), (twin, 1)):
+                if out is None:
+                    continue
+                synthesize_trial(out, n_frames=args.frames, seed=t["seed"], params=own_params(t["seed"]), camera=cam,
+                                 effects=dict(t["effects"]) or None, overwrite=True, draw_seed=draws)
+                # the truth sidecar is next to the bag: move it out of reach of the diagnosis
+                tp = truth_path(out)
+                if tp.exists():
+                    tp.unlink()
         elif t["gen"] == "foreign":
             from foreign_effects import synth_foreign
 
-            synth_foreign(bag, dict(t["effects"]), n_frames=args.frames, seed=t["seed"], width=args.width)
+            synth_foreign(bag, dict(t["effects"]), n_frames=args.frames, seed=t["seed"], width=args.width,
+                          twin_out=twin)
         else:
             from physical_effects import synth_physical
 
-            synth_physical(bag, dict(t["effects"]), n_frames=args.frames, seed=t["seed"], width=args.width)
+            synth_physical(bag, dict(t["effects"]), n_frames=args.frames, seed=t["seed"], width=args.width,
+                           twin_out=twin)
         t_gen = time.perf_counter() - t0
         t0 = time.perf_counter()
         diag = diagnose_bag(bag, k=args.frames, seed=0, **diagnose_kwargs(args))
         t_diag = time.perf_counter() - t0
-    doc = diag.to_json()
+        doc = diag.to_json()
+        ceiling = twin_ceiling(bag, twin, doc, args.frames) if twin else None
     truth = truth_of(t)
     pred = [v["effect"] for v in doc["verdict"]]
     top1 = pred[0] if pred else "none"
@@ -184,6 +219,7 @@ def run_trial(t, args) -> dict:
             "gain": doc["final"]["theta_heldout"] - doc["base"]["theta_heldout"],
             "candidates": [(c.get("effect"), c.get("delta_heldout"), c.get("margin")) for c in doc.get("candidates", [])],
             "screen": {e: s.get("screen_score") for e, s in doc.get("signatures", {}).items()},
+            "ceiling_heldout": None if ceiling is None else float(np.mean(ceiling)),
             "time_s": t_diag, "gen_s": t_gen, "timing": doc.get("timing")}
 
 
@@ -281,7 +317,11 @@ def summarize_multi(rows, label: str):
     recall = TP / (TP + FN) if TP + FN else float("nan")
     precision = TP / (TP + FP) if TP + FP else float("nan")
     exact = sum(set(r["truth"]) == set(r["pred"]) for r in multi)
-    close = []
+    close, fair = [], []
+
+    def r4(v):
+        return "n/a" if v is None else f"{v:.4f}"
+
     for r in multi:
         c = ctrl.get((r["gen"], r["seed"]))
         c_th = c.get("final_heldout") if c else None
@@ -289,15 +329,27 @@ def summarize_multi(rows, label: str):
         d = (th - c_th) if (th is not None and c_th is not None) else None
         if d is not None:
             close.append(d)
+        # the ceilings (twins: the same dive, other draws): the draws of noise and particles lower the best θ
+        # any model can reach; compare each final model's distance below its own ceiling
+        tc, cc = r.get("ceiling_heldout"), (c.get("ceiling_heldout") if c else None)
+        short = (th - tc) if (th is not None and tc is not None) else None
+        c_short = (c_th - cc) if (c_th is not None and cc is not None) else None
+        if short is not None and c_short is not None:
+            fair.append(short - c_short)
         if str(r["top1"]).startswith("error") or (c and str(c["top1"]).startswith("error")):
             print(f"  {r['key']}: DIAGNOSIS FAILED ({r['top1']}; control {c['top1'] if c else 'n/a'})")
-        print(f"  {r['key']}: verdict {r['pred']}; held-out θ final {th if th is None else round(th, 4)}, "
-              f"control final {c_th if c_th is None else round(c_th, 4)} ({'n/a' if d is None else f'{d:+.4f}'}); "
-              f"control verdict {c['pred'] if c else 'n/a'}")
+        print(f"  {r['key']}: verdict {r['pred']}; held-out θ final {r4(th)} (ceiling {r4(tc)}), "
+              f"control final {r4(c_th)} (ceiling {r4(cc)}); final - control {'n/a' if d is None else f'{d:+.4f}'}"
+              + ("" if short is None or c_short is None else
+                 f", below the ceiling {-short:.4f} (control {-c_short:.4f})")
+              + f"; control verdict {c['pred'] if c else 'n/a'}")
     within = sum(d >= -0.01 for d in close)
+    within_fair = sum(d >= -0.01 for d in fair)
     print(f"{label} multi: recall {100 * recall:.0f}% ({TP}/{TP + FN}), precision {100 * precision:.0f}% ({TP}/{TP + FP}), "
           f"exact sets {exact}/{len(multi)}; held-out θ of the final model within 0.01 of its control's (or above) "
-          f"in {within}/{len(close)}" + (f", mean difference {np.mean(close):+.4f}" if close else ""))
+          f"in {within}/{len(close)}" + (f", mean difference {np.mean(close):+.4f}" if close else "")
+          + (f"; as far below its ceiling as the control is below its own (within 0.01) in {within_fair}/{len(fair)}"
+             if fair else ""))
     return recall, precision, len(multi), TP, FN, FP
 
 
@@ -314,6 +366,7 @@ def main():
     ap.add_argument("--multi", type=int, default=2, help="multi-effect trials per generator (each with a control)")
     ap.add_argument("--multi-gens", default=",".join(MULTI_GENS))
     ap.add_argument("--no-pairs", action="store_true")
+    ap.add_argument("--no-twins", action="store_true", help="no twin recordings (the ceiling of held-out θ)")
     ap.add_argument("--width", type=int, default=640)
     ap.add_argument("--frames", type=int, default=8)
     ap.add_argument("--max-candidates", type=int, default=3)

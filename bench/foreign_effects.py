@@ -313,10 +313,19 @@ def foreign_trajectory(n: int, rng: np.random.Generator, start_m=4.0, end_m=None
     return poses
 
 
+#: effects whose draws are new in every frame: a twin draws them again
+RANDOM_EFFECTS = ("marine_snow", "sensor_noise")
+
+
 def synth_foreign(out, effects: dict, n_frames: int = 8, seed: int = 0, width: int = 640,
-                  params: Optional[UnderwaterParams] = None) -> dict:
+                  params: Optional[UnderwaterParams] = None, twin_out=None, twin_seed: int = 1) -> dict:
     """Write a foreign trial bag; ``effects``: {name: 'mild'|'strong'}. Returns a truth dict (not written
-    next to the bag: the diagnosis is blind)."""
+    next to the bag: the diagnosis is blind).
+
+    ``twin_out``: also write the same dive (water, path, lamps, pose errors, fixed patterns) with other draws
+    of what is new in every frame (particles, noise; from ``twin_seed``): what a simulation that reproduced
+    everything but the draws would score against the recording. The recording is the same with or without
+    its twin."""
     rng = np.random.default_rng(1000 + seed)
     if params is None:       # other values than the uw_sil default truth
         params = UnderwaterParams(a=tuple(rng.uniform([0.3, 0.07, 0.05], [0.55, 0.16, 0.12])),
@@ -328,21 +337,32 @@ def synth_foreign(out, effects: dict, n_frames: int = 8, seed: int = 0, width: i
     trial: dict = {}
     shot = 0.03 / 255.0
     read = 1.2 / 255.0
-    samples = []
+    samples, twins = [], []
+    twin_rng = np.random.default_rng([1000 + seed, 77, int(twin_seed)]) if twin_out is not None else None
     with Renderer(camera=cam) as ren:
         for k, T in enumerate(poses):
             rr = ren.render(T)
             img = degrade(rr.rgb, rr.range, rr.depth, params.as_vector(), fog="exp2")
             ctx = Ctx(img, rr, cam, T, params, rng, k, trial)
+            twin = None      # the twin's frame, from the first effect that draws anew in every frame on
             for name, e in effs:
+                if twin_rng is not None and twin is None and name in RANDOM_EFFECTS:
+                    twin = Ctx(ctx.img.copy(), rr, cam, T, params, twin_rng, k, trial)
                 e(ctx)
-            img = ctx.img
-            if not trial.get("own_noise"):
-                sd = np.sqrt(read ** 2 + shot * np.clip(img, 0, 1))
-                img = img + sd * rng.standard_normal(img.shape).astype(np.float32)
-            img8 = np.clip(np.rint(img * 255), 0, 255).astype(np.uint8)
+                if twin is not None:
+                    e(twin)
             pose_rec = trial.pop("pose_recorded", T)
-            samples.append(Sample(1_700_000_000_000_000_000 + seed * 10**9 + k * 10**8, img8, cam, pose_rec,
-                                  cam.frame_id))
+            stamp = 1_700_000_000_000_000_000 + seed * 10**9 + k * 10**8
+            for c, r, dest in ((ctx, rng, samples), (twin or (ctx if twin_rng is not None else None), twin_rng, twins)):
+                if c is None:
+                    continue
+                img = c.img
+                if not trial.get("own_noise"):
+                    sd = np.sqrt(read ** 2 + shot * np.clip(img, 0, 1))
+                    img = img + sd * r.standard_normal(img.shape).astype(np.float32)
+                img8 = np.clip(np.rint(img * 255), 0, 255).astype(np.uint8)
+                dest.append(Sample(stamp, img8, cam, pose_rec, cam.frame_id))
     write_trial(out, iter(samples), overwrite=True)
+    if twin_out is not None:
+        write_trial(twin_out, iter(twins), overwrite=True)
     return {"effects": dict(effects), "params": params.as_dict(), "ranges": [float(np.linalg.norm(T[:3, 3])) for T in poses]}

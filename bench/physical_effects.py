@@ -515,11 +515,16 @@ def _bayer_code():
 
 
 def synth_physical(out, effects: dict, n_frames: int = 8, seed: int = 0, width: int = 640,
-                   bs_step: int = 8, return_images: bool = False) -> dict:
+                   bs_step: int = 8, return_images: bool = False, twin_out=None, twin_seed: int = 1) -> dict:
     """Write a physically based trial bag; ``effects``: {name: 'mild'|'strong'} from :data:`PHYSICAL_EFFECTS`.
 
     Returns the truth (not written anywhere): the effects with ``artificial_light`` (always on), the water,
     lamps, ranges and exposure.
+
+    ``twin_out``: also write the same dive (water, lamps, path, exposure, the sensor's fixed pattern) with
+    other draws of the particles and the photon / read noise (from ``twin_seed``): what a simulation that
+    reproduced everything but the draws would score against the recording. The recording is the same with or
+    without its twin.
     """
     import cv2
 
@@ -537,7 +542,9 @@ def synth_physical(out, effects: dict, n_frames: int = 8, seed: int = 0, width: 
         model = add_seafloor(model, clearance=clearance, seed=seed)
     dirs, xt, yt = _rays(cam)
     snow = snow_field(rng, effects["marine_snow"]) if "marine_snow" in effects else None
-    lin, masks = [], []
+    twin_rng = np.random.default_rng([99000 + seed, 77, int(twin_seed)]) if twin_out is not None else None
+    snow_twin = snow_field(twin_rng, effects["marine_snow"]) if snow is not None and twin_rng is not None else None
+    lin, masks, lin_twin = [], [], []
     with Renderer(model, camera=cam, shading="flat") as ren, \
             Renderer(model, camera=CameraModel.from_fov(384, 384, 110.0), shading="flat") as sren:
         for k, T in enumerate(dive.poses):
@@ -556,11 +563,16 @@ def synth_physical(out, effects: dict, n_frames: int = 8, seed: int = 0, width: 
             if "forward_scatter" in effects:
                 img = img + forward_scatter_add(L_s, R, hit, dive, effects["forward_scatter"], cam.fx)
             img = img + backscatter(cam, dirs, R, dive, step=bs_step)
+            twin = img
             if snow is not None:
                 img = add_snow(img, snow, k, T, np.where(hit, rr.depth, np.inf), dive)
+                if snow_twin is not None:
+                    twin = add_snow(twin, snow_twin, k, T, np.where(hit, rr.depth, np.inf), dive)
             if "vignetting" in effects:
-                img = img * vignetting_map(cam, dirs, effects["vignetting"])[..., None]
+                vig = vignetting_map(cam, dirs, effects["vignetting"])[..., None]
+                img, twin = img * vig, twin * vig
             lin.append(img)
+            lin_twin.append(twin)
             masks.append(rr.labels == 1)
     # fixed exposure for the dive: the panel's mean at the closest frame
     wb, oetf, ped = _tone(effects.get("camera_response"))
@@ -572,22 +584,30 @@ def synth_physical(out, effects: dict, n_frames: int = 8, seed: int = 0, width: 
     x_ref = float(xs[np.searchsorted(oetf(xs), y)])
     K = x_ref / ref                     # radiance -> fraction of full scale
     fpn: dict = {}
-    samples = []
-    for k, (T, img) in enumerate(zip(dive.poses, lin)):
+    samples, twins = [], []
+
+    def camera_out(img, r):
         x = img * K
         if "sensor_noise" in effects:
-            x = _bayer_noise(x * 255.0, rng, effects["sensor_noise"], fpn) / 255.0
+            x = _bayer_noise(x * 255.0, r, effects["sensor_noise"], fpn) / 255.0
         else:       # photons are counted whatever the camera: a low-gain sensor's shot and read noise
-            x = _base_noise(x * 255.0, rng) / 255.0
+            x = _base_noise(x * 255.0, r) / 255.0
         dn = ped + (255.0 - ped) * oetf(np.clip(x * wb, 0, 1))
         img8 = np.clip(np.rint(dn), 0, 255).astype(np.uint8)
         if "compression" in effects:
             q = {"mild": 70, "strong": 25}[effects["compression"]]
             ok, buf = cv2.imencode(".jpg", img8[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, q])
             img8 = np.ascontiguousarray(cv2.imdecode(buf, cv2.IMREAD_COLOR)[..., ::-1])
-        samples.append(Sample(1_700_000_000_000_000_000 + seed * 10**9 + int(k * dive.dt_s * 1e9), img8, cam, T,
-                              cam.frame_id))
+        return img8
+
+    for k, (T, img, twin) in enumerate(zip(dive.poses, lin, lin_twin)):
+        stamp = 1_700_000_000_000_000_000 + seed * 10**9 + int(k * dive.dt_s * 1e9)
+        samples.append(Sample(stamp, camera_out(img, rng), cam, T, cam.frame_id))
+        if twin_rng is not None:        # after the recording's frame: the fixed pattern is the recording's
+            twins.append(Sample(stamp, camera_out(twin, twin_rng), cam, T, cam.frame_id))
     write_trial(out, iter(samples), overwrite=True)
+    if twin_out is not None:
+        write_trial(twin_out, iter(twins), overwrite=True)
     truth = {"effects": {"artificial_light": "always", **effects},
              "water": {"a": dive.a.tolist(), "b": dive.b.tolist(), "c": dive.c.tolist(), "g": dive.g},
              "lamps": [{"pos": l.pos.tolist(), "axis": l.axis.tolist(), "half_angle_deg": math.degrees(l.half_angle),

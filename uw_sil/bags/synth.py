@@ -162,7 +162,8 @@ def synthesize_trial(out, n_frames: int = 20, seed: int = 0, params: UnderwaterP
                      progress: Optional[Callable[[int, int], None]] = None, image_topic: str = "/camera/image_raw",
                      info_topic: Optional[str] = "/camera/camera_info", pose_topic: str = "/panel/pose",
                      image_format: str = "raw", jpeg_quality: int = 95, pose_in: str = "topic",
-                     distortion=None, camera_yaml=None, panel_frame: str = "panel", tf_rate_factor: int = 10) -> dict:
+                     distortion=None, camera_yaml=None, panel_frame: str = "panel", tf_rate_factor: int = 10,
+                     draw_seed: Optional[int] = None) -> dict:
     """Render an approach, degrade it with ``params``, add noise, and write a ROS 2 bag plus truth sidecar.
 
     Parameters
@@ -195,6 +196,10 @@ def synthesize_trial(out, n_frames: int = 20, seed: int = 0, params: UnderwaterP
         it, with ``P`` from OpenCV's optimal new camera matrix (alpha 0).
     camera_yaml : path, optional
         Also write the calibration as a ROS ``camera_calibration`` YAML file.
+    draw_seed : int, optional
+        Seed of what is new in every frame (the sensor noise, random effects such as particles) instead of
+        ``seed``: the same dive (path, water, fixed patterns) seen with other random draws, a twin of the
+        trial (what a simulation that reproduced everything but the draws would score against it).
 
     Returns
     -------
@@ -224,6 +229,9 @@ def synthesize_trial(out, n_frames: int = 20, seed: int = 0, params: UnderwaterP
     calib = CameraCalibration.from_camera_model(camera, D=distortion, camera_name="synthetic")
     rng = np.random.default_rng(seed)
     path = approach_path(start_m, end_m, rng)
+    draws = int(seed) if draw_seed is None else int(draw_seed)
+    if draw_seed is not None:
+        rng = np.random.default_rng([draws, 1])      # the base noise: after the path, a stream of its own
     poses = [path(k / max(1, n_frames - 1)) for k in range(n_frames)]
     t0_ns = 1_700_000_000_000_000_000 + int(seed) * 1_000_000_000
     dt_ns = int(round(1e9 / rate_hz))
@@ -240,7 +248,7 @@ def synthesize_trial(out, n_frames: int = 20, seed: int = 0, params: UnderwaterP
 
         # random effects get their own stream (the trial's seed, offset), so trials without them keep their noise
         with SimCamera(params, camera=render_cam, model=model, fog=fog, effects=model_effects,
-                       seed=int(seed) + 7919) as sim:
+                       seed=draws + 7919) as sim:
             for k, T in enumerate(poses):
                 frame = sim.render(T)
                 img = frame.image
@@ -277,6 +285,7 @@ def synthesize_trial(out, n_frames: int = 20, seed: int = 0, params: UnderwaterP
         "fog": fog,
         "noise": asdict(noise),
         "seed": int(seed),
+        **({"draw_seed": int(draw_seed)} if draw_seed is not None else {}),
         "n_frames": int(n_frames),
         "ranges_m": [float(np.linalg.norm(T[:3, 3])) for T in poses],
         "camera": asdict(camera),
