@@ -445,3 +445,76 @@ def test_stale_shm_segments_are_removed_only_when_their_owner_is_gone(tmp_path):
         "fastdds_00000000000000aa", "fastdds_00000000000000aa_el", "fastdds_fedcba9876543210",
         "fastdds_fedcba9876543210_el", "fastdds_port7000", "fastdds_port7000_el"]
     assert clean_stale_shm_segments(tmp_path / "missing") == (0, 0)
+
+
+class _TimerNode:
+    """Stand-in for a node (no DDS): its timers are fired by the test; its log is a list."""
+
+    def __init__(self):
+        self.timers, self.log = [], []
+
+    def create_timer(self, period, callback):
+        node = self
+
+        class T:
+            cancelled = False
+
+            def cancel(self):
+                self.cancelled = True
+
+            def fire(self):
+                if not self.cancelled:
+                    callback()
+        t = T()
+        node.timers.append(t)
+        return t
+
+    def get_logger(self):
+        log = self.log
+
+        class L:
+            def warning(self, text):
+                log.append(text)
+        return L()
+
+    def tick(self):
+        for t in list(self.timers):
+            t.fire()
+
+
+@pytest.mark.parametrize("lost", [0, 1, 2, 3])
+def test_a_lost_service_answer_is_asked_for_again(lost):
+    """A request whose answer does not come is cancelled and sent again; the first answer of the last request
+    is taken, once; an answer to a request given up on is not taken; after `attempts` lost answers, the node
+    hears why."""
+    from rclpy.task import Future
+
+    from uw_sil.nodes import AskedUntilAnswered
+
+    node, sent, answers, gave_up = _TimerNode(), [], [], []
+
+    def send():
+        sent.append(Future())
+        return sent[-1]
+
+    req = AskedUntilAnswered(node, send, answers.append, "reading the parameters of /sim", timeout=0.02,
+                             attempts=3, on_give_up=gave_up.append)
+    for i in range(lost):
+        node.tick()                       # within the deadline: nothing happens
+        assert len(sent) == i + 1
+        time.sleep(0.05)                  # past it (sleeping longer only makes it later)
+        node.tick()
+    if lost < 3:
+        assert len(sent) == lost + 1 and all(f.cancelled() for f in sent[:-1])
+        assert len(node.log) == lost and all("asking again" in t for t in node.log)
+        for f in sent[:-1]:               # a late answer to a request given up on
+            f.set_result("late")
+        assert answers == []
+        sent[-1].set_result("answer")
+        sent[-1].set_result("again")     # one answer is taken once
+        assert answers == [sent[-1]] and answers[0].result() == "again" and not gave_up
+        assert all(t.cancelled for t in node.timers)
+    else:
+        assert len(sent) == 3 and all(f.cancelled() for f in sent)
+        assert answers == [] and gave_up == ["no answer to reading the parameters of /sim after 3 requests of 0 s each"]
+    req.cancel()

@@ -111,6 +111,85 @@ def declare_string_array(node, name: str, descriptor) -> list:
     return list(node.get_parameter(name).value)
 
 
+#: Seconds a service's answer may take before the request is sent again (:class:`AskedUntilAnswered`)
+ANSWER_TIMEOUT = 5.0
+
+
+class AskedUntilAnswered:
+    """A service request sent again when its answer does not come within ``timeout`` seconds.
+
+    A lost answer must not become a node that waits for ever. Fast DDS does lose them: a server that has not
+    yet matched the client's response reader gives up on its answer ("failed to send response (timeout):
+    client will not receive response", rmw_fastrtps), and the client's future then never completes (seen in
+    the suite: an enhancer waiting for ``sim_camera``'s parameters until its bag player gave up). Every request
+    made through this class must be idempotent (reading or setting the same values again).
+
+    ``send()`` makes the request and returns its future; ``on_answer(future)`` is called with the first answer
+    (from the executor's thread); after ``attempts`` unanswered requests ``on_give_up(text)``. A node timer
+    watches the deadline, so the node must be spinning. :meth:`cancel` stops it.
+    """
+
+    def __init__(self, node, send: Callable, on_answer: Callable, what: str, timeout: float = ANSWER_TIMEOUT,
+                 attempts: int = 6, on_give_up: Optional[Callable] = None):
+        import threading
+
+        self.node, self._send, self._on_answer, self.what = node, send, on_answer, what
+        self.timeout, self.attempts, self._on_give_up = float(timeout), int(attempts), on_give_up
+        self._lock = threading.Lock()
+        self.attempt = 0
+        self._future = None
+        self._asked_at = 0.0
+        self._ended = False
+        self._timer = node.create_timer(min(0.25, self.timeout / 4), self._check)
+        self._ask()
+
+    def _ask(self):
+        with self._lock:
+            self.attempt += 1
+            self._asked_at = time.monotonic()
+            self._future = fut = self._send()
+        fut.add_done_callback(self._answered)
+
+    def _answered(self, fut):
+        with self._lock:
+            if fut is not self._future or fut.cancelled() or self._ended:
+                return          # an answer given up on (a later request is out), or cancelled here
+            self._ended = True
+        self._timer.cancel()
+        self._on_answer(fut)
+
+    def _check(self):
+        with self._lock:
+            if self._ended:
+                self._timer.cancel()
+                return
+            late = time.monotonic() - self._asked_at > self.timeout
+            fut = self._future
+            give_up = late and self.attempt >= self.attempts
+            if give_up:
+                self._ended = True
+        if not late:
+            return
+        fut.cancel()            # the client forgets the request (rclpy removes it from its pending ones)
+        if give_up:
+            self._timer.cancel()
+            text = f"no answer to {self.what} after {self.attempts} requests of {self.timeout:.0f} s each"
+            if self._on_give_up is not None:
+                self._on_give_up(text)
+            return
+        self.node.get_logger().warning(f"no answer to {self.what} within {self.timeout:.0f} s; asking again "
+                                       f"(request {self.attempt + 1} of at most {self.attempts})")
+        self._ask()
+
+    def cancel(self):
+        with self._lock:
+            self._ended = True
+            fut = self._future
+        self._timer.cancel()
+        if fut is not None:
+            fut.cancel()
+
+
 @contextmanager
 def executor_for(node):
     """A SingleThreadedExecutor serving ``node``, shut down on leaving (also on Ctrl-C).

@@ -80,7 +80,7 @@ from ..sim.optics import FOG_MODES
 from ..bags.imgmsg import compressed_to_rgb, image_to_rgb
 from ..bags.stamps import StampSynchronizer
 from ..sim.transforms import pose_to_matrix
-from . import camera_from_file, executor_for, run_node
+from . import AskedUntilAnswered, camera_from_file, executor_for, run_node
 
 #: ``image_transport`` values: the camera topic and message type of each (image_transport's naming).
 TRANSPORTS = {"raw": ("camera/image_raw", Image), "compressed": ("camera/image_raw/compressed", CompressedImage)}
@@ -508,7 +508,11 @@ class BackwardFitNode(Node):
             else:
                 self._finish(False, f"failed: {summary}, but {sim} rejected the parameters: {res.reason}")
 
-        self.sim_params.set_parameters_atomically(values).add_done_callback(on_response)
+        # asked again when the answer is lost (setting the same values twice is harmless)
+        self._set_request = AskedUntilAnswered(
+            self, lambda: self.sim_params.set_parameters_atomically(values), on_response,
+            f"setting the {what} of {sim}",
+            on_give_up=lambda text: self._finish(False, f"failed: {summary}, but {text}"))
 
     # ------------------------------------------------------------------ the diagnosis
 

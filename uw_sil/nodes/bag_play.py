@@ -198,7 +198,9 @@ class BagPlayNode(Node):
                 return nodes <= {i.node_name for i in self.get_subscriptions_info_by_topic(pub.topic_name)}
             if not self._wait(executor, subscribed, g("wait_timeout")):
                 if self.context.ok():
-                    who = f"{', '.join(sorted(nodes))} not subscribed to" if nodes else "no subscriber on"
+                    there = {i.node_name for i in self.get_subscriptions_info_by_topic(pub.topic_name)}
+                    who = (f"{', '.join(sorted(nodes - there))} not subscribed to" if nodes
+                           else "no subscriber on")
                     self.get_logger().error(f"{who} {topic} after {g('wait_timeout'):g} s")
                 return False
         self._wait(executor, lambda: False, g("delay"))

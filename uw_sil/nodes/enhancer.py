@@ -63,7 +63,7 @@ from ..bags.stamps import StampSynchronizer
 from ..enhance.sil import METHODS, Enhancer, model_from_parameters
 from ..sim.camera import CameraModel
 from ..sim.params import RGB_NAMES
-from . import executor_for, run_node
+from . import AskedUntilAnswered, executor_for, run_node
 
 MODEL_NAMES = tuple(RGB_NAMES) + ("fog_mode",)
 #: ``image_transport`` values: the camera topic and message type of each (image_transport's naming).
@@ -193,7 +193,7 @@ class EnhancerNode(Node):
         self._from_events = set()
         self.model = None
         self._param_client = AsyncParameterClient(self, sim)
-        self._param_future = None
+        self._param_request = None
         self.create_subscription(ParameterEvent, "/parameter_events", self._on_parameter_event,
                                  qos_profile_parameter_events)
 
@@ -275,9 +275,8 @@ class EnhancerNode(Node):
     def _get_ready(self):
         """Fetch the sim node's model once; subscribe to the camera once the sim node listens for poses."""
         if self.model is None:
-            if self._param_future is None and self._param_client.services_are_ready():
-                self._param_future = self._param_client.get_parameters(list(MODEL_NAMES))
-                self._param_future.add_done_callback(self._on_parameters)
+            if self._param_request is None and self._param_client.services_are_ready():
+                self._ask_sim(MODEL_NAMES, self._on_parameters)
             return
         if self._image_sub is not None:
             return
@@ -290,12 +289,22 @@ class EnhancerNode(Node):
         self._ready_timer.cancel()
         self.get_logger().info(f"ready: enhancing {self._image_sub.topic_name} with {self.method}")
 
+    def _ask_sim(self, names, then):
+        """Read ``names`` of the sim node, asked again when its answer is lost; all over again from the model
+        parameters when none comes at all."""
+        def give_up(text):
+            self.get_logger().error(f"{text}; starting over")
+            self._param_request = None
+
+        self._param_request = AskedUntilAnswered(self, lambda: self._param_client.get_parameters(list(names)), then,
+                                                 f"reading the parameters of {self._sim_fqn}", on_give_up=give_up)
+
     def _on_parameters(self, fut, names=MODEL_NAMES, got_before=None):
         try:
             values = fut.result().values
         except Exception as e:  # the service call failed: ask again
             self.get_logger().warning(f"reading the parameters of {self._sim_fqn} failed: {e}; retrying")
-            self._param_future = None
+            self._param_request = None
             return
         got = dict(got_before or {})
         got.update({n: _value(v) for n, v in zip(names, values)})
@@ -303,19 +312,17 @@ class EnhancerNode(Node):
         if not all(n in {**self._sim_values, **got} for n in RGB_NAMES):
             self.get_logger().error(f"{self._sim_fqn} has no model parameters {list(RGB_NAMES)}; retrying",
                                     throttle_duration_sec=10.0)
-            self._param_future = None
+            self._param_request = None
             return
         # Then the effects sim_node renders: its ``effects`` list (asked alone: a request naming a parameter the
         # node does not declare is answered with no values at all), then their parameters.
         if got_before is None:
-            self._param_future = self._param_client.get_parameters(["effects"])
-            self._param_future.add_done_callback(lambda f: self._on_parameters(f, ("effects",), got))
+            self._ask_sim(("effects",), lambda f: self._on_parameters(f, ("effects",), got))
             return
         if names == ("effects",):
             keys = _effect_keys(got.get("effects", self._sim_values.get("effects", "")))
             if keys:
-                self._param_future = self._param_client.get_parameters(keys)
-                self._param_future.add_done_callback(lambda f: self._on_parameters(f, tuple(keys), got))
+                self._ask_sim(keys, lambda f: self._on_parameters(f, tuple(keys), got))
                 return
         self._apply_sim_values(got, "parameter services")
 
