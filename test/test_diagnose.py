@@ -224,7 +224,7 @@ def test_snow_is_checked_on_the_pixels_its_particles_leave_alone():
     clean = np.stack([40 + 0.5 * xx, 90 + 0.3 * yy, 120 + 20 * (labels > 0)], -1).astype(np.float32)
     specks = np.zeros((h, w), np.float32)
     specks[rng.integers(0, h, 60), rng.integers(0, w, 60)] = 80.0
-    frames = [SimpleNamespace(image=clean + specks[..., None], labels=labels, water=labels == 0, factor=1, levels=1,
+    frames = [SimpleNamespace(image=clean + specks[..., None], labels=labels, water=labels == 0, factor=1,
                               shape=(h, w)) for _ in range(3)]
 
     class Model:

@@ -45,32 +45,3 @@ def test_noise_field_is_fixed_and_has_the_sigma():
     np.testing.assert_array_equal(out[0], np.clip(np.rint(128.0 + f1.field), 0, 255))
     with pytest.raises(ValueError, match="sigma"):
         NoiseField((4, 4, 3), -1.0)
-
-
-@pytest.mark.parametrize("level", [0.4, 3.3])
-def test_a_reduced_simulation_lies_on_the_reduced_recordings_lattice(level):
-    """A recording is whole grey levels; box-averaged 2x2 it lies on quarter levels. The simulation of the
-    reduced frame (the same scene, Gaussian noise of the sigma measured on the reduced recording) rounded to
-    that lattice has the recording's values, mean and spread; rounded to whole levels, dark water (0.4 DN)
-    would read 0 or 1, its spread half as large again."""
-    from uw_sil.fit.residuals import box_down
-    from uw_sil.sim.noise import round_to_levels
-
-    rng = np.random.default_rng(0)
-    full = np.clip(np.rint(level + 0.6 * rng.standard_normal((480, 640, 3))), 0, 255)     # the camera's frame
-    rec = box_down(full, 2)
-    sigma = rec.std(axis=(0, 1))            # the flat field's spread and level (a fit would match them)
-    sims = {}
-    for levels in (1, 4):
-        sim = np.full(rec.shape, rec.mean(), np.float32)
-        sims[levels] = NoiseField(rec.shape, sigma, seed=1).apply(sim, levels=levels)
-    sim = sims[4]
-    assert np.all(np.unique(sim * 4) % 1 == 0)                                # quarter levels
-    assert set(np.unique(sim)) <= set(np.unique(rec)) | {v / 4 for v in range(0, 4 * 8)}
-    assert abs(sim.mean() - rec.mean()) < 0.05
-    assert abs(sim.std() / rec.std() - 1) < 0.1
-    whole = sims[1]
-    if level < 1:
-        assert whole.std() / rec.std() > 1.3                                 # what whole levels did
-    r = np.zeros((2, 2, 3), np.float32) + np.float32(0.3)
-    assert np.allclose(round_to_levels(r.copy(), 4), 0.25) and np.allclose(round_to_levels(r.copy(), 1), 0)

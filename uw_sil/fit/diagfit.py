@@ -25,7 +25,6 @@ from typing import Optional, Sequence
 import numpy as np
 
 from .._shared.process import default_threads
-from ..sim.noise import round_to_levels
 from ..sim.params import DEFAULT_RGB_BOUNDS, RGB_NAMES
 from .residuals import LABEL_PANEL, ReducedFrame, base_sim
 
@@ -163,12 +162,10 @@ class FrameObjective:
                     out[sel, k] = np.nan
                     continue
                 imgs *= 255.0
-                levels = self.rframes[k].levels     # the reduced recording's lattice of grey levels
                 if noise is not None:
-                    noise.apply(imgs, levels=levels)
+                    noise.apply(imgs)
                 else:
                     np.clip(imgs, 0.0, 255.0, out=imgs)
-                    round_to_levels(imgs, levels)
                 bad = ~np.isfinite(imgs).reshape(len(sel), -1).all(axis=1)
                 if bad.any():
                     imgs[bad] = 0.0

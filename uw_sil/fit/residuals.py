@@ -109,15 +109,6 @@ class ReducedFrame:
         return self.cover.shape
 
     @property
-    def levels(self) -> int:
-        """Steps per grey level of the reduced recording: the mean of ``factor**2`` whole grey levels lies on a
-        lattice of ``1 / factor**2``. A simulation compared with it is quantized to the same lattice
-        (:func:`uw_sil.sim.noise.round_to_levels`), not to whole grey levels: in dark water (0.4 DN) whole
-        levels turned the quarter-level spread of a 2x2 average into 0 / 1, and the histogram similarity of
-        the water of a simulation that is the recording but for its noise draws fell from 0.94 to 0.63."""
-        return int(self.factor) ** 2
-
-    @property
     def r_fin(self) -> np.ndarray:
         """Range with 0 where nothing is hit."""
         return np.where(self.cover > 0, self.range, np.float32(0.0))

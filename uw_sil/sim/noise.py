@@ -82,22 +82,10 @@ class NoiseField:
         rng = np.random.default_rng(seed)
         self.field = (rng.standard_normal(shape, dtype=np.float32) * self.sigma).astype(np.float32)
 
-    def apply(self, images_255: np.ndarray, quantize: bool = True, levels: int = 1) -> np.ndarray:
-        """In place: add the noise to (N, H, W, 3) or (H, W, 3) float32 images in 0..255, clip, round (to
-        ``1 / levels`` of a grey level: see :func:`round_to_levels`)."""
+    def apply(self, images_255: np.ndarray, quantize: bool = True) -> np.ndarray:
+        """In place: add the noise to (N, H, W, 3) or (H, W, 3) float32 images in 0..255, clip, round."""
         images_255 += self.field
         np.clip(images_255, 0.0, 255.0, out=images_255)
         if quantize:
-            round_to_levels(images_255, levels)
+            np.rint(images_255, out=images_255)
         return images_255
-
-
-def round_to_levels(images_255: np.ndarray, levels: int = 1) -> np.ndarray:
-    """In place: round to whole grey levels (``levels`` 1: what a camera writes) or to ``1 / levels`` of one
-    (an image box-averaged from whole grey levels over blocks of ``levels`` pixels)."""
-    if levels == 1:
-        return np.rint(images_255, out=images_255)
-    images_255 *= np.float32(levels)
-    np.rint(images_255, out=images_255)
-    images_255 /= np.float32(levels)
-    return images_255

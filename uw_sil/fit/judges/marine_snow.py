@@ -35,7 +35,7 @@ def snow_refit(R_hi, fit_f, held_f, base_x, fog, seed) -> dict:
             sims = eff_model.simulate(k, np.stack(x_list)) * 255.0
             row = []
             for img in sims:
-                nf.apply(img, levels=rf.levels)
+                nf.apply(img)
                 row.append(speck_density(luminance(img), S, hit)[0])
             out_sim.append(row)
         return np.array(out_real), np.array(out_sim)
@@ -108,7 +108,7 @@ def unclaimed_theta(rframes, model, x_base, x_cand, seed: int = 0) -> dict:
         panel = rf.labels == LABEL_PANEL
         masks = [m for m in (panel & free, ~panel & free) if m.sum() >= 64]
         ref = ThetaReference(rf.image, mask=free, hist_mask=masks or None)
-        NoiseField(rf.shape + (3,), noise[k], seed=seed + 31 * k).apply(sims, levels=rf.levels)
+        NoiseField(rf.shape + (3,), noise[k], seed=seed + 31 * k).apply(sims)
         b, c = ref.score(sims)
         base.append(float(b))
         cand.append(float(c))
