@@ -563,14 +563,15 @@ def synth_physical(out, effects: dict, n_frames: int = 8, seed: int = 0, width: 
             if "forward_scatter" in effects:
                 img = img + forward_scatter_add(L_s, R, hit, dive, effects["forward_scatter"], cam.fx)
             img = img + backscatter(cam, dirs, R, dive, step=bs_step)
-            twin = img
+            twin = img if twin_rng is not None else None
             if snow is not None:
                 img = add_snow(img, snow, k, T, np.where(hit, rr.depth, np.inf), dive)
                 if snow_twin is not None:
                     twin = add_snow(twin, snow_twin, k, T, np.where(hit, rr.depth, np.inf), dive)
             if "vignetting" in effects:
                 vig = vignetting_map(cam, dirs, effects["vignetting"])[..., None]
-                img, twin = img * vig, twin * vig
+                img = img * vig
+                twin = None if twin is None else twin * vig
             lin.append(img)
             lin_twin.append(twin)
             masks.append(rr.labels == 1)
