@@ -153,8 +153,6 @@ def twin_ceiling(bag, twin_bag, doc, k: int) -> list:
     noise) against the recording, per held-out frame of the diagnosis ``doc``: the θ of a simulation that
     reproduced the generator exactly but for its draws, the most any model can reach on these frames. Scored
     as the diagnosis scores its models (the same frames, reduction and θ references)."""
-    import dataclasses
-
     from uw_sil.bags import read_samples
     from uw_sil.fit.diagfit import theta_reference
     from uw_sil.fit.residuals import box_down, load_frames, reduce_frame, reduction_factor
@@ -167,7 +165,7 @@ def twin_ceiling(bag, twin_bag, doc, k: int) -> list:
         f = frames[i]
         fac = reduction_factor(f.image.shape[1], 320)
         ref = theta_reference(reduce_frame(f, fac))
-        tw = box_down(dataclasses.replace(f, image=np.ascontiguousarray(twin[i])).image, fac)
+        tw = box_down(twin[i], fac)                  # as reduce_frame reduces the recording
         out.append(float(ref.score(np.asarray(tw, np.float32)[None])[0]))
     return out
 
