@@ -353,9 +353,8 @@ def synth_foreign(out, effects: dict, n_frames: int = 8, seed: int = 0, width: i
                     e(twin)
             pose_rec = trial.pop("pose_recorded", T)
             stamp = 1_700_000_000_000_000_000 + seed * 10**9 + k * 10**8
-            for c, r, dest in ((ctx, rng, samples), (twin or (ctx if twin_rng is not None else None), twin_rng, twins)):
-                if c is None:
-                    continue
+            outs = [(ctx, rng, samples)] + ([(twin or ctx, twin_rng, twins)] if twin_rng is not None else [])
+            for c, r, dest in outs:
                 img = c.img
                 if not trial.get("own_noise"):
                     sd = np.sqrt(read ** 2 + shot * np.clip(img, 0, 1))

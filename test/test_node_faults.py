@@ -497,8 +497,8 @@ def test_a_lost_service_answer_is_asked_for_again(lost):
         sent.append(Future())
         return sent[-1]
 
-    req = AskedUntilAnswered(node, send, answers.append, "reading the parameters of /sim", timeout=0.02,
-                             attempts=3, on_give_up=gave_up.append)
+    AskedUntilAnswered(node, send, answers.append, "reading the parameters of /sim", timeout=0.02, attempts=3,
+                       on_give_up=gave_up.append)
     for i in range(lost):
         node.tick()                       # within the deadline: nothing happens
         assert len(sent) == i + 1
@@ -517,4 +517,3 @@ def test_a_lost_service_answer_is_asked_for_again(lost):
     else:
         assert len(sent) == 3 and all(f.cancelled() for f in sent)
         assert answers == [] and gave_up == ["no answer to reading the parameters of /sim after 3 requests of 0 s each"]
-    req.cancel()

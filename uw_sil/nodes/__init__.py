@@ -126,7 +126,7 @@ class AskedUntilAnswered:
 
     ``send()`` makes the request and returns its future; ``on_answer(future)`` is called with the first answer
     (from the executor's thread); after ``attempts`` unanswered requests ``on_give_up(text)``. A node timer
-    watches the deadline, so the node must be spinning. :meth:`cancel` stops it.
+    watches the deadline, so the node must be spinning.
     """
 
     def __init__(self, node, send: Callable, on_answer: Callable, what: str, timeout: float = ANSWER_TIMEOUT,
@@ -180,14 +180,6 @@ class AskedUntilAnswered:
         self.node.get_logger().warning(f"no answer to {self.what} within {self.timeout:.0f} s; asking again "
                                        f"(request {self.attempt + 1} of at most {self.attempts})")
         self._ask()
-
-    def cancel(self):
-        with self._lock:
-            self._ended = True
-            fut = self._future
-        self._timer.cancel()
-        if fut is not None:
-            fut.cancel()
 
 
 @contextmanager
