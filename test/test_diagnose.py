@@ -342,12 +342,45 @@ def test_backward_elimination_drops_an_effect_a_later_one_explains(bags, monkeyp
     chosen = [s["chosen"] for s in doc["selection"]]
     assert chosen[:2] == ["artificial_light", "vignetting"], doc["selection"]
     elim = [c for c in doc["candidates"] if c.get("elimination")]
-    assert [(c["effect"], c["accepted"]) for c in elim] == [("artificial_light", False)], elim
+    assert [(c["effect"], c["accepted"]) for c in elim] == [("artificial_light", False), ("vignetting", True)], elim
     assert "-artificial_light" in chosen
     assert doc["final"]["effects"] == ["vignetting"]
     assert [v["effect"] for v in doc["verdict"]] == ["vignetting"]
     assert not [k for k in doc["final"]["params"] if k.startswith("artificial_light.")]
     assert any(k.startswith("vignetting.") for k in doc["final"]["params"])
+
+
+def test_backward_elimination_also_tests_the_last_effect_and_drops_the_weakest(bags, monkeypatch):
+    """Backward elimination tests every effect of the model, the last accepted included, and drops the one with
+    the least evidence. Planted on a vignetting-only trial: vignetting (the truth) joins in round 1, the lamps
+    are forced in round 2 whatever their evidence. Testing only the effects accepted before the last (as the
+    elimination once did) would keep the spurious lamps, never tested, and keep vignetting; the lamps must be
+    tested and dropped, vignetting kept, and the verdict be vignetting alone."""
+    import uw_sil.fit.judges as jd
+    from uw_sil.fit.diagnose import diagnose_bag
+
+    cls = type(jd.JUDGES["artificial_light"])
+    real = cls.accept
+
+    def planted(self, r, current, margin, residual=None):
+        # the forward selection's refits carry their time (``refit_s``); the elimination's comparisons do not
+        if current.effects == ("vignetting",) and "refit_s" in r.extra:
+            return True, 1e3, "theta"
+        if not current.effects and "refit_s" in r.extra:       # not before vignetting
+            return False, 0.0, "theta"
+        return real(self, r, current, margin, residual)
+
+    monkeypatch.setattr(cls, "accept", planted)
+    monkeypatch.setattr(cls, "plausibility", lambda self, values, flat=(): [])
+    doc = diagnose_bag(bags["vignetting"], k=6, effects_allowed=["artificial_light", "vignetting"],
+                       processes=1).to_json()
+    chosen = [s["chosen"] for s in doc["selection"]]
+    assert chosen[:2] == ["vignetting", "artificial_light"], doc["selection"]
+    elim = [c for c in doc["candidates"] if c.get("elimination")]
+    assert [(c["effect"], c["accepted"]) for c in elim] == [("vignetting", True), ("artificial_light", False)], elim
+    assert "-artificial_light" in chosen
+    assert [v["effect"] for v in doc["verdict"]] == ["vignetting"]
+    assert not [k for k in doc["final"]["params"] if k.startswith("artificial_light.")]
 
 
 def test_a_plausible_explanation_is_chosen_before_a_stretched_one(bags, monkeypatch):
@@ -511,7 +544,7 @@ def test_a_pose_correction_survives_the_elimination_of_an_earlier_effect(bags, m
 
     monkeypatch.setattr(jb, "refit_without", worse)
     doc = diagnose_bag(bags["vignetting"], k=6, effects_allowed=["camera_response", "pose_error", "vignetting"],
-                       max_effects=3).to_json()
+                       max_effects=3, processes=1).to_json()    # (refit_without is patched in this process)
     chosen = [s["chosen"] for s in doc["selection"]]
     assert chosen[:3] == ["camera_response", "pose_error", "vignetting"] and "-camera_response" in chosen, chosen
     assert {v["effect"] for v in doc["verdict"]} == {"pose_error", "vignetting"}, doc["verdict"]
