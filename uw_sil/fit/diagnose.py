@@ -320,9 +320,10 @@ def _eliminate(job, current, accepted: list, seed: int, say, candidates: list, s
     lamps accepted as vignetting, then the lamps; lamp falloff on the panel, once β_B ≠ β_D and a seafloor are
     in, by them). Every effect of the model, the last accepted included, is tested: it must still beat its
     margin against the model without it, refitted (:func:`uw_sil.fit.judges.base.refit_without`), by the rule
-    that accepted it (θ, else the residual). Of those that do not, the one with the least evidence (θ gain or
-    residual gain, whichever is larger, in its margins) is dropped (removed from ``accepted``), and the
-    smaller model is tested again, until every effect beats its margin or one is left.
+    that accepted it (θ, else the residual). Of those that do not, the one with the least evidence (its held-out
+    θ gain or, where its judge takes the residual as evidence, its residual gain, whichever is larger, in its
+    margins) is dropped (removed from ``accepted``), and the smaller model is tested again, until every effect
+    beats its margin or one is left.
 
     Why every effect and the weakest first: two effects can each explain what the other does. Testing only
     the earlier ones dropped whichever came first, whatever the evidence: on a physically lit dive with a
@@ -379,8 +380,11 @@ def _eliminate(job, current, accepted: list, seed: int, say, candidates: list, s
                 say(f"elimination: {e} kept (held-out {'residual' if crit == 'residual' else 'θ'} beyond its "
                     f"margin without it)")
                 continue
-            # its evidence for staying, in margins: the better of the held-out θ and residual gains
-            evidence = max(float(strength), rgain[0] / rgain[1] if rgain else -np.inf)
+            # its evidence for staying, in margins: its held-out θ gain, or its residual gain where that is
+            # evidence for it (:attr:`~uw_sil.fit.judges.base.Judge.residual_evidence`), whichever is more
+            evidence = float(strength)
+            if rgain and JUDGES[e].residual_evidence:
+                evidence = max(evidence, rgain[0] / rgain[1])
             weak.append((evidence, a, reduced, len(steps) - 1))
         if not weak:
             return current, dropped
