@@ -343,6 +343,7 @@ def test_backward_elimination_drops_an_effect_a_later_one_explains(bags, monkeyp
     assert chosen[:2] == ["artificial_light", "vignetting"], doc["selection"]
     elim = [c for c in doc["candidates"] if c.get("elimination")]
     assert [(c["effect"], c["accepted"]) for c in elim] == [("artificial_light", False), ("vignetting", True)], elim
+    assert [bool(c.get("dropped")) for c in elim] == [True, False]
     assert "-artificial_light" in chosen
     assert doc["final"]["effects"] == ["vignetting"]
     assert [v["effect"] for v in doc["verdict"]] == ["vignetting"]
@@ -372,12 +373,14 @@ def test_backward_elimination_also_tests_the_last_effect_and_drops_the_weakest(b
 
     monkeypatch.setattr(cls, "accept", planted)
     monkeypatch.setattr(cls, "plausibility", lambda self, values, flat=(): [])
-    doc = diagnose_bag(bags["vignetting"], k=6, effects_allowed=["artificial_light", "vignetting"],
-                       processes=1).to_json()
+    diag = diagnose_bag(bags["vignetting"], k=6, effects_allowed=["artificial_light", "vignetting"], processes=1)
+    doc = diag.to_json()
     chosen = [s["chosen"] for s in doc["selection"]]
     assert chosen[:2] == ["vignetting", "artificial_light"], doc["selection"]
     elim = [c for c in doc["candidates"] if c.get("elimination")]
     assert [(c["effect"], c["accepted"]) for c in elim] == [("vignetting", True), ("artificial_light", False)], elim
+    assert [bool(c.get("dropped")) for c in elim] == [False, True]
+    assert any(line.endswith(" dropped") and "artificial_light" in line for line in diag.summary_lines())
     assert "-artificial_light" in chosen
     assert [v["effect"] for v in doc["verdict"]] == ["vignetting"]
     assert not [k for k in doc["final"]["params"] if k.startswith("artificial_light.")]

@@ -135,7 +135,9 @@ class Diagnosis:
             if c.get("elimination"):
                 lines.append(f"  elimination: {c['model']} + {c['effect']:<13s} against the model without it: "
                              f"held-out θ {c['theta_heldout']:.4f} (Δ {c['delta_heldout']:+.4f}, margin "
-                             f"{c.get('margin', 0):.4f}) {'kept' if c.get('accepted') else 'dropped'}")
+                             f"{c.get('margin', 0):.4f}) "
+                             + ("kept" if c.get("accepted") else "dropped" if c.get("dropped") else
+                                "not beyond its margin (another had less evidence)"))
                 continue
             lines.append(f"  round {c.get('round', 1)}: {c.get('model', 'base')} + {c['effect']:<24s} held-out θ "
                          f"{c['theta_heldout']:.4f} (Δ {c['delta_heldout']:+.4f}, margin {c.get('margin', 0):.4f})"
@@ -385,16 +387,17 @@ def _eliminate(job, current, accepted: list, seed: int, say, candidates: list, s
             evidence = float(strength)
             if rgain and JUDGES[e].residual_evidence:
                 evidence = max(evidence, rgain[0] / rgain[1])
-            weak.append((evidence, a, reduced, len(steps) - 1))
+            weak.append((evidence, a, reduced, len(steps) - 1, len(candidates) - 1))
         if not weak:
             return current, dropped
-        evidence, a, reduced, step = min(weak, key=lambda w: w[0])
+        evidence, a, reduced, step, row = min(weak, key=lambda w: w[0])
         e = a["effect"]
         others = [w[1]["effect"] for w in weak if w[1] is not a]
         say(f"elimination: {e} dropped: the model without it, refitted, is as good on the held-out frames "
             f"(θ {reduced.sel_pf.mean():.4f} vs {current.sel_pf.mean():.4f}; its evidence {evidence:.2f} margins"
             + (f", the least of {', '.join([e] + others)})" if others else ")"))
         steps[step]["chosen"] = f"-{e}"
+        candidates[row]["dropped"] = True
         accepted.remove(a)
         current, dropped = reduced, True
         fits[current.name] = {"x": current.x, "held_pf": np.asarray(current.sel_pf), "model": current.model,
