@@ -71,7 +71,7 @@ class Workspace:
         domains = domain if isinstance(domain, (list, tuple)) else [domain] * len(commands)
         done = [None] * len(commands)
         todo = list(range(len(commands)))
-        for attempt in range(attempts):
+        for _ in range(attempts):
             procs = [(i, subprocess.Popen(self.cmd(*commands[i]), env=self.env(domains[i]), stdout=subprocess.PIPE,
                                           stderr=subprocess.STDOUT, text=True, start_new_session=True)) for i in todo]
             for i, p in procs:

@@ -386,7 +386,7 @@ def teardown_deadline(seconds: float = TEARDOWN_DEADLINE, armed: bool = True):
     Exit code 1, not 0: the teardown did not finish (Fast DDS may have left shared-memory segments, which
     the next node start removes, :func:`clean_stale_shm_segments`).
 
-    The likely cause, caught since with gdb in processes that imitate the nodes' teardown (6 hangs, one native
+    The likely cause, caught since with gdb in processes that imitate the nodes' teardown (19 hangs, one native
     stack every time; in the real ``sim_camera`` not caught): a deadlock inside Fast DDS 3.2. Its receive
     thread, holding the participant's discovery (PDP) mutex, processes a peer's removal of a writer one of
     this process's reliable readers is matched to and waits for the event thread (``WriterProxy::stop`` ->
@@ -394,7 +394,7 @@ def teardown_deadline(seconds: float = TEARDOWN_DEADLINE, armed: bool = True):
     (``PDP::set_next_announcement_interval``), waits for that mutex. Every later teardown step that stops a
     timer (deleting a writer, the participant) then waits for ever, at no CPU (the 94 % reported once was
     probably ps's average over the process's life). It forms when peers leave while the announcement fires:
-    once in about 1500 imitated teardowns at the default announcement period, 4 in 876 with it at 20 ms
+    once in about 1500 imitated teardowns at the default announcement period, 11 in 3013 with it at 20 ms
     (upstream class: eProsima/Fast-DDS#6502). Nothing here can undo it, so the deadline ends the process.
     Not armed when ``armed`` is False: a node run inside another program (a test) must not end it.
     """
