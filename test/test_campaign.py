@@ -80,7 +80,17 @@ def test_dask_gives_the_same_table_and_a_rerun_skips(dives, local_run, tmp_path)
     _, res = local_run
     local = _table(res / "campaign.parquet")
     found = find_dives(str(dives / "*" / "*.mcap"))
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cl, \
+
+    class PatientNanny(distributed.Nanny):
+        """Dask stops a worker process within 5 s by default (4 s to stop, then SIGKILL and 5 s to reap it); on a
+        saturated machine the reaping alone took longer, and the cluster's exit raised TimeoutError after every
+        assertion had passed (1 in 1 fresh-clone runs with a CPU hog and two diagnoses beside it)."""
+
+        async def close(self, timeout: float = 120, reason: str = "nanny-close"):
+            return await super().close(timeout=timeout, reason=reason)
+
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
+                                  worker_class=PatientNanny) as cl, \
             distributed.Client(cl) as client:
         dask_rows = run_campaign(found, tmp_path / "dask", ["fit"], OPTIONS, executor=client.get_executor(),
                                      command=main)
