@@ -26,9 +26,10 @@ def near_frame():
 
 
 def test_reduced_lamp_shading_is_the_block_mean_of_the_full_resolution_one(near_frame):
-    """The lamps' Lambert term on a reduced frame: with the block mean of the full-resolution normals, the
-    reduced simulation is the block mean of the full-resolution one (up to what varies inside a block);
-    normals taken from the block-averaged depth turn the sides of the panel's knobs and levers."""
+    """The lamps' Lambert term and cast shadows on a reduced frame: with the block mean of the full-resolution
+    normals and the shadows computed on the finer grid, the reduced simulation is the block mean of the
+    full-resolution one (up to what varies inside a block); normals taken from the block-averaged depth turn
+    the sides of the panel's knobs and levers."""
     from uw_sil.sim.model import Geometry
 
     lamps = {"artificial_light": {"offset_x": 0.35, "offset_y": -0.15, "half_angle": 0.8, "shape": 2.0,
@@ -51,10 +52,17 @@ def test_reduced_lamp_shading_is_the_block_mean_of_the_full_resolution_one(near_
 
     from dataclasses import replace
 
-    # measured: 1.1 against 9.4 grey levels rms (the lamps kept below saturation: the block mean of a clipped
-    # image is not the clipped block mean)
+    # measured: 2.8 against 8.0 grey levels rms (the lamps kept below saturation: the block mean of a clipped
+    # image is not the clipped block mean). Most of the 2.8 is the lamps' cast shadows of the knobs and levers,
+    # a few full-resolution pixels wide: without them it was 1.1 against 9.4
     e_new, e_old = err(rf), err(replace(rf, normals=None))
-    assert e_new < 2.0 and e_new < 0.25 * e_old, (e_new, e_old)
+    assert e_new < 3.5 and e_new < 0.45 * e_old, (e_new, e_old)
+    # the shadows are computed at twice the reduced resolution and averaged over each block: at the reduced
+    # resolution itself they are further from the block mean (measured 5.2)
+    coarse = replace(rf)
+    coarse.fine_geometry = lambda: None
+    e_coarse = err(coarse)
+    assert e_new < 0.7 * e_coarse, (e_new, e_coarse)
 
 
 def test_a_pose_correction_below_a_quarter_pixel_is_not_named():

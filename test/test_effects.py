@@ -153,7 +153,8 @@ def test_artificial_light_multiplicative_and_falling_with_distance(frames, rende
         tr = np.exp(-np.asarray(P.a)[None, None] * rr.range[..., None]) * np.exp(-(P.rho_f * rr.depth) ** 2)[..., None]
         Bk = np.asarray(P.b) * (1 - tr)
         plate = (np.abs(rr.depth - float(T[2, 3])) < 2e-3) & (np.hypot(*np.mgrid[-59.5:60.5, -79.5:80.5]) < 6)
-        assert plate.sum() > 20                                           # the plate's front face near the centre
+        plate &= lamp_visibility(rr, cam, T, (0.3, 0, 0)) * lamp_visibility(rr, cam, T, (-0.3, 0, 0)) == 1
+        assert plate.sum() > 20                      # the plate's front face near the centre, outside the shadows
         g = (img - Bk)[plate].sum(axis=0) / (base - Bk)[plate].sum(axis=0)
         gains[key] = g[:2]                                                # yellow paint: no blue to measure
     def on_axis(d):                      # two lamps at (+-0.3, 0, 0) lighting the plate point (0, 0, d)
@@ -162,6 +163,76 @@ def test_artificial_light_multiplicative_and_falling_with_distance(frames, rende
         return beam * (d / R) / R ** 2 * np.exp(-np.asarray(P.a[:2]) * R)
     np.testing.assert_allclose(gains["far"] / gains["near"], on_axis(3.5) / on_axis(1.5), rtol=0.03)
     assert gains["far"][0] < gains["far"][1]                             # red suffers more on the lamp path
+
+
+def lamp_visibility(rr, cam, T, L):
+    """The lamp effect's cast-shadow visibility (H, W) of a lamp at ``L`` (camera frame) for render ``rr``."""
+    from uw_sil.sim.effects.artificial_light import ArtificialLight
+    from uw_sil.sim.model import Geometry
+
+    st = ArtificialLight().prepare(Geometry.from_render(rr, cam, T), cam)
+    return ArtificialLight._visibility(st, np.asarray(L, np.float32))
+
+
+def _block_scene(cam, z_wall=2.0, z_block=1.8, half=0.1):
+    """A wall facing the camera at ``z_wall`` with a square block (side ``2 half``) standing ``z_wall - z_block``
+    in front of it on the optical axis: depth, range and part ids of the view (no render: exact geometry)."""
+    from uw_sil.sim.model import Geometry
+
+    h, w = cam.height, cam.width
+    xt = (np.arange(w) - cam.cx) / cam.fx
+    yt = (np.arange(h) - cam.cy) / cam.fy
+    XT, YT = np.meshgrid(xt, yt)
+    on_block = (np.abs(XT * z_block) <= half) & (np.abs(YT * z_block) <= half)
+    depth = np.where(on_block, z_block, z_wall).astype(np.float32)
+    rng = (depth * np.sqrt(1 + XT ** 2 + YT ** 2)).astype(np.float32)
+    parts = np.where(on_block, 2, 1).astype(np.uint16)
+    geom = Geometry(cam, np.full((h, w, 3), 0.5, np.float32), depth, rng, part_ids=parts)
+    return geom, XT, YT, on_block
+
+
+def test_artificial_light_casts_shadows_that_move_with_the_lamp():
+    """A lamp beside the camera: the block hides it from a strip of the wall on the side away from the lamp, as
+    wide as the geometry says (the shadow of the block's edge minus the part of the wall the block hides from the
+    camera); the mirrored lamp throws it to the other side; a lamp at the camera throws none the camera can see;
+    shadowed wall gets the fill light only."""
+    from uw_sil.sim.effects.artificial_light import ArtificialLight, LampRig
+
+    cam = CameraModel.from_fov(320, 240, 70.0)
+    geom, XT, YT, on_block = _block_scene(cam)
+    eff = ArtificialLight()
+    st = eff.prepare(geom, cam)
+    row = cam.height // 2
+    wall_x = XT[row] * 2.0                                   # where each column of the row meets the wall
+    for ox in (1.0, -1.0):
+        vis = eff._visibility(st, np.array([ox, 0.0, 0.0], np.float32))
+        # the block's edge facing away from the lamp at x_e = -sign(ox) 0.1, z 1.8: its shadow on the wall at
+        # z 2 reaches x = ox + (x_e - ox) 2 / 1.8; the camera sees the wall from x_e 2 / 1.8 outwards
+        x_e = -np.sign(ox) * 0.1
+        x_far, x_near = ox + (x_e - ox) * 2.0 / 1.8, x_e * 2.0 / 1.8
+        lo, hi = sorted((x_far, x_near))
+        strip = (~on_block[row]) & (wall_x > lo) & (wall_x < hi)
+        # the shadow's far edge comes from rays that graze the block's edge: they pass in front of it over a
+        # centimetre or two, which the depth bias and the sampling along the ray can miss, so it may end up to
+        # 4 px (3.5 cm of wall here) short; the rest of the strip is black, its edges softened over 3x3 pixels
+        far = 0.04 if ox > 0 else 0.0
+        near = 0.0 if ox > 0 else 0.04
+        inner = strip & (wall_x > lo + 0.01 + far) & (wall_x < hi - 0.01 - near)
+        assert inner.sum() >= 5 and (vis[row][inner] == 0).all()
+        lit = (~on_block[row]) & ((wall_x < lo - 0.01) | (wall_x > hi + 0.01))
+        assert (vis[row][lit] == 1).all()                                    # nowhere else on the row
+        assert strip.sum() - 4 <= (vis[row] < 0.5).sum() <= strip.sum()       # the strip's width, within 4 px
+        assert (vis[on_block] == 1).all()                                    # the block's own face is lit
+    assert (eff._visibility(st, np.zeros(3, np.float32)) == 1).all()          # the lamp at the eye
+    # in the effect: a lamp-only light (fill 0) leaves the shadow black; fill 0.3 leaves 0.3 of the uniform light
+    vals = {p.name: p.default for p in eff.params}
+    vals.update(offset_x=1.0, offset_y=0.0, balance=0.0, half_angle=1.4, power=1.0)
+    a = np.array([0.1, 0.1, 0.1], np.float32)
+    vis = eff._visibility(st, np.array([1.0, 0.0, 0.0], np.float32))
+    for fill in (0.0, 0.3):
+        L = eff.illumination(st, LampRig({**vals, "fill": fill}), a)
+        np.testing.assert_allclose(L[:, vis == 0], fill, atol=1e-6)
+        assert (L[:, (vis == 1) & ~on_block] > fill + 0.1).all()
 
 
 def test_artificial_light_colour_tints_the_lamp_light_and_its_veil(frames, renderer):

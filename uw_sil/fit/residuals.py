@@ -113,6 +113,34 @@ class ReducedFrame:
         """Range with 0 where nothing is hit."""
         return np.where(self.cover > 0, self.range, np.float32(0.0))
 
+    def fine_geometry(self):
+        """The view at twice this resolution (the full resolution at most) for detail below these pixels
+        (:attr:`uw_sil.sim.model.Geometry.fine`): depth and range averaged over the model pixels of each
+        block, the part of the block's centre; None at full resolution. Built once per frame and process."""
+        if self.factor < 2:
+            return None
+        g = self.extra.get("fine_geometry")
+        if g is None:
+            from ..sim.model import Geometry
+
+            f = self.factor // 2
+            rr = self.frame.render
+            hit = np.isfinite(rr.range) & np.isfinite(rr.depth)
+            cover = box_down(hit, f)
+            safe = np.maximum(cover, 1e-6)
+            none = cover <= 0
+            dep = np.where(none, np.inf, box_down(np.where(hit, rr.depth, 0.0), f) / safe).astype(np.float32)
+            rng = np.where(none, np.inf, box_down(np.where(hit, rr.range, 0.0), f) / safe).astype(np.float32)
+            h, w = cover.shape
+            c = f // 2
+            parts = rr.part_ids[c:h * f:f, c:w * f:f][:h, :w]
+            cam = self.frame.camera.scaled(1.0 / f) if f > 1 else self.frame.camera
+            g = Geometry(cam, np.zeros((h, w, 3), np.float32), dep, rng, part_ids=parts, pose=self.frame.pose)
+            if g.shape != (2 * self.shape[0], 2 * self.shape[1]):
+                return None                          # a frame whose size is not a multiple of the factor
+            self.extra["fine_geometry"] = g
+        return g
+
 
 def dilate(mask: np.ndarray, r: int) -> np.ndarray:
     import cv2

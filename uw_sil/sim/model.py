@@ -70,10 +70,14 @@ class Geometry:
     normals : (H, W, 3) unit surface normals pointing to the camera's side, from the depth map (lazy,
         cached): on a plane ``n.X = d`` the inverse depth is affine in ``(xt, yt)``; derivatives are
         one-sided differences towards the smoother neighbour of the same part (never across silhouettes).
+    fine : Geometry or None
+        The same view at an integer multiple of this resolution, for effects whose detail is finer than these
+        pixels (the lamps' cast shadows of a handle a few pixels wide): they compute on it and average over
+        each block. None: this geometry is the finest there is.
     """
 
     def __init__(self, camera, rgb, depth, range_m, labels=None, part_ids=None, pose=None,
-                 X=None, normals=None):
+                 X=None, normals=None, fine=None):
         h, w = int(camera.height), int(camera.width)
         rgb = np.asarray(rgb, dtype=np.float32)
         depth = np.asarray(depth, dtype=np.float32)
@@ -102,6 +106,9 @@ class Geometry:
         self._X = X
         self._normals = normals
         self._rays = None
+        self.fine = fine
+        if fine is not None and (fine.shape[0] % h or fine.shape[1] % w or fine.shape[0] // h != fine.shape[1] // w):
+            raise ValueError(f"fine geometry {fine.shape} is not an integer multiple of ({h}, {w})")
 
     @property
     def shape(self) -> tuple:

@@ -22,6 +22,22 @@ camera's channels is not the white light the renders assume; 1 = white). The ren
 headlight shading stays in ``i``: for surfaces tilted away from the optical axis the orientation is
 counted in both (documented approximation; on a panel facing the camera the renderer's term is 1).
 
+Cast shadows: a lamp beside the camera lights the surface around a handle or a valve that the camera sees,
+but the handle hides the lamp from part of it, so each lamp's term is multiplied by its visibility ``S_l(X)``
+(the fill light is not: it has no direction). The shadow test runs in screen space on the camera's own depth
+map: points on the segment from ``X`` towards ``L_l`` (1.5 cm to 60 cm from the surface) are projected into
+the image, and the point is in shadow when the surface seen there lies in front of the segment by more
+than a bias (1 cm plus 1.5 pixel footprints) and less than 30 cm (a thin object far in front of the segment
+does not hide it). With the lamps within a metre of the camera the occluders of the panel's relief are in
+view, which is what makes the camera's depth map sufficient; what the camera cannot see (the back of an
+object) casts no shadow here. The binary test is averaged over 3x3 pixels of the same surface (soft edges:
+a lamp of a few centimetres); on a reduced frame it runs at twice its resolution (``Geometry.fine``) and is
+averaged over each block, since a lever's shadow is a few full-resolution pixels wide. The lamp positions are
+rounded to 1 cm for it (a shadow on the panel then moves by a fraction of a millimetre), so that the
+candidates of a fit share their shadows. No parameter: shadows follow from the geometry and the lamp positions, and
+they move with the vehicle, which neither a seafloor, nor a backscatter coefficient, nor a response curve
+does.
+
 Lamp-lit backscatter (single scattering, the veil in the water, brightest where beams cross the view)::
 
     V_c(p) = veil * t_c * int_0^{R_c} sum_l w_l P(theta_l) HG(psi) / HG(pi) / R_l(s)^2 exp(-a_c (R_l(s) + s)) ds
@@ -38,6 +54,7 @@ open water. Invertible (``restore`` divides by ``L`` with a capped gain and subt
 from __future__ import annotations
 
 import math
+from typing import Optional
 
 import cv2
 import numpy as np
@@ -45,11 +62,100 @@ import numpy as np
 from .base import Effect, EffectParam
 
 R0 = 2.0                   # m, reference distance of the normalization
+SHADOW_T = np.geomspace(0.015, 0.6, 24).astype(np.float32)   # m from the surface towards the lamp
+SHADOW_BIAS = 0.01         # m, plus SHADOW_PX pixel footprints: no shadow from the surface itself
+SHADOW_PX = 0.75
+SHADOW_THICK = 0.3         # m, the deepest an occluder is assumed to be
+SHADOW_GRID = 0.01         # m, lamp positions rounded for the shadow test (its cache key)
 HG_G = 0.9                 # Henyey-Greenstein asymmetry of the veil
 S_MIN, S_MAX, N_S = 0.02, 12.0, 32
 GRID_W = 48
 GRID_MIN = 12
 LN2 = math.log(2.0)
+
+
+def _shadow_grid(geom) -> dict:
+    """What the screen-space shadow test needs, on ``geom.fine`` where there is one: depth map (inf where
+    nothing is hit), hit mask, surface points as planes, part ids, intrinsics and the block size ``sub``."""
+    fine = getattr(geom, "fine", None)
+    g = fine if fine is not None else geom
+    cam = g.camera
+    X = g.X
+    return {"z": np.where(g.hit, g.depth, np.float32(np.inf)).astype(np.float32), "hit": g.hit,
+            "X": [np.ascontiguousarray(X[..., k]) for k in range(3)], "parts": np.ascontiguousarray(g.part_ids),
+            "K": tuple(float(v) for v in (cam.fx, cam.fy, cam.cx, cam.cy)),
+            "sub": g.shape[0] // geom.shape[0]}
+
+
+def _visibility_on(g: dict, L: np.ndarray) -> np.ndarray:
+    """The shadow test of the module's docstring on one grid (:func:`_shadow_grid`): (H, W) share of the lamp at
+    ``L`` seen from each surface point, 1 where nothing is hit.
+
+    Only points that can be in shadow are tested: an occluder is at most SHADOW_THICK nearer than the point
+    and, seen from the camera, at most ``fx |L_xy| SHADOW_THICK / z^2`` pixels away from it (the parallax of the
+    lamp's offset), so a point with no pixel at least the bias nearer within that radius is lit."""
+    z, hit, X = g["z"], g["hit"], g["X"]
+    h, w = z.shape
+    fx, fy, cx, cy = g["K"]
+    vis = np.ones((h, w), np.float32)
+    if not hit.any():
+        return vis
+    zmin = float(z[hit].min())
+    r = int(math.ceil(max(fx, fy) * math.hypot(float(L[0]), float(L[1])) * SHADOW_THICK / (zmin * zmin))) + 2
+    r = min(r, max(h, w))
+    zfin = np.where(hit, z, np.float32(1e6)).astype(np.float32)
+    near = cv2.erode(zfin, cv2.getStructuringElement(cv2.MORPH_RECT, (2 * r + 1, 2 * r + 1)),
+                     borderType=cv2.BORDER_CONSTANT, borderValue=1e6)
+    cand = hit & (near < z - np.float32(SHADOW_BIAS))
+    idx = np.flatnonzero(cand)
+    if idx.size:
+        Xc = [X[k].ravel()[idx] for k in range(3)]
+        D = [np.float32(L[k]) - Xc[k] for k in range(3)]
+        dist = np.sqrt(D[0] * D[0] + D[1] * D[1] + D[2] * D[2])
+        inv = np.float32(1.0) / np.maximum(dist, np.float32(1e-6))
+        for k in range(3):
+            D[k] *= inv
+        zflat = zfin.ravel()
+        shadow = np.zeros(idx.size, bool)
+        for t in SHADOW_T:
+            t = np.float32(t)
+            S2 = np.maximum(Xc[2] + t * D[2], np.float32(1e-3))
+            u = np.rint((Xc[0] + t * D[0]) / S2 * np.float32(fx) + np.float32(cx))
+            v = np.rint((Xc[1] + t * D[1]) / S2 * np.float32(fy) + np.float32(cy))
+            ok = (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1) & (dist > np.float32(1.5) * t)
+            # outside the image, or the lamp itself: no shadow; water reads as far away (1e6 m)
+            zq = zflat[np.where(ok, v * w + u, 0).astype(np.int64)]
+            zq += np.float32(SHADOW_BIAS)
+            zq += S2 * np.float32(SHADOW_PX / fx)
+            shadow |= ok & (zq < S2) & (zq > S2 - np.float32(SHADOW_THICK - SHADOW_BIAS))
+        vis.ravel()[idx[shadow]] = 0.0
+    else:
+        return vis
+    dark = idx[shadow]
+    if dark.size == 0:
+        return vis
+    # soft edges: the mean over the 3x3 pixels of the same surface part, in the box around the shadows
+    # (the box's outer ring only feeds the pixels next to it; the image's border pads as another part)
+    rows, cols = dark // w, dark % w
+    r0, r1 = max(int(rows.min()) - 2, 0), min(int(rows.max()) + 3, h)
+    c0, c1 = max(int(cols.min()) - 2, 0), min(int(cols.max()) + 3, w)
+    bh, bw = r1 - r0, c1 - c0
+    parts = g["parts"][r0:r1, c0:c1]
+    hb = hit[r0:r1, c0:c1]
+    num = np.zeros((bh, bw), np.float32)
+    den = np.zeros((bh, bw), np.float32)
+    pv = np.pad(vis[r0:r1, c0:c1], 1)
+    pp = np.pad(parts, 1)
+    for dv in (0, 1, 2):
+        for du in (0, 1, 2):
+            same = (pp[dv:dv + bh, du:du + bw] == parts) & hb
+            num += np.where(same, pv[dv:dv + bh, du:du + bw], np.float32(0))
+            den += same
+    soft = np.where(hb, num / np.maximum(den, 1), np.float32(1.0))
+    i0, i1 = (1 if r0 > 0 else 0), bh - (1 if r1 < h else 0)
+    j0, j1 = (1 if c0 > 0 else 0), bw - (1 if c1 < w else 0)
+    vis[r0 + i0:r0 + i1, c0 + j0:c0 + j1] = soft[i0:i1, j0:j1]
+    return vis
 
 
 class LampRig:
@@ -131,6 +237,9 @@ class ArtificialLight(Effect):
         st["n"] = [np.ascontiguousarray(n[..., k]) for k in range(3)]
         st["X2"] = np.einsum("hwk,hwk->hw", X, X)
         st["nX"] = np.einsum("hwk,hwk->hw", n, X)
+        # cast shadows: the camera's depth map and the surface points it sees, for the screen-space test, at the
+        # finer resolution where the geometry has one (averaged over each block afterwards)
+        st["shadow"] = _shadow_grid(geom)
         # veil: a coarse grid of unit viewing directions and log-spaced distances along them
         gw = min(w, GRID_W, max(GRID_MIN, w // 4))     # the veil is smooth: a quarter of the columns suffices
         gh = min(h, max(2, int(round(gw * h / w)))) if h > 1 else 1
@@ -168,13 +277,14 @@ class ArtificialLight(Effect):
     cache_entries = 8
     CACHE_BYTES = 64 << 20
 
-    def _cached(self, st, kind: str, key, compute) -> np.ndarray:
+    def _cached(self, st, kind: str, key, compute, entries: Optional[int] = None) -> np.ndarray:
         cache = st.setdefault(kind, {})
         hit = cache.pop(key, None)
         if hit is None:
             hit = compute()
             hit.setflags(write=False)
-            room = min(self.cache_entries, self.CACHE_BYTES // max(hit.nbytes, 1))
+            room = min(self.cache_entries if entries is None else min(entries, self.cache_entries * 8),
+                       self.CACHE_BYTES // max(hit.nbytes, 1))
             while cache and len(cache) >= room:
                 cache.pop(next(iter(cache)))         # least recently used first
         if self.cache_entries > 0:
@@ -203,9 +313,28 @@ class ArtificialLight(Effect):
             nL = n[0] * L[0] + n[1] * L[1] + n[2] * L[2]
             lamb = np.clip((nL - st["nX"]) / R, 0.0, 1.0)        # n . (L - X) / R
             g = np.float32(wl * R0 * R0) * rig.beam(cos_t) * lamb / (R * R)
+            # the shadows of a lamp position rounded to SHADOW_GRID (moving a lamp by 5 mm moves a shadow on the
+            # panel by a fraction of a millimetre), kept for many positions: a fit's candidates share them
+            Lq = np.round(L / np.float32(SHADOW_GRID)) * np.float32(SHADOW_GRID)
+            g *= self._cached(st, "_S", tuple(map(float, Lq)), lambda: self._visibility(st, Lq), entries=64)
             for c in range(3):
                 E[c] += g * np.exp(-np.float32(a[c]) * (R - np.float32(R0)))
         return E
+
+    @staticmethod
+    def _visibility(st, L) -> np.ndarray:
+        """(H, W) share of the lamp at ``L`` seen from each surface point (1 on pixels without a hit): the
+        screen-space shadow test of the module's docstring, on whole planes (one depth lookup per step), at the
+        shadow grid's resolution and averaged over the hit pixels of each block."""
+        g = st["shadow"]
+        vis = _visibility_on(g, np.asarray(L, np.float32))
+        if g["sub"] == 1:
+            return vis
+        f = g["sub"]
+        h, w = g["z"].shape[0] // f, g["z"].shape[1] // f
+        hit = g["hit"].reshape(h, f, w, f).sum(axis=(1, 3), dtype=np.float32)
+        lit = np.where(g["hit"], vis, np.float32(0)).reshape(h, f, w, f).sum(axis=(1, 3), dtype=np.float32)
+        return np.where(hit > 0, lit / np.maximum(hit, 1), np.float32(1.0)).astype(np.float32)
 
     def veil_field(self, st, rig: LampRig, a, strength: float) -> np.ndarray:
         """(3, H, W) lamp-lit backscatter (linear in ``strength``)."""
