@@ -33,8 +33,9 @@ view, which is what makes the camera's depth map sufficient; what the camera can
 object) casts no shadow here. The binary test is averaged over 3x3 pixels of the same surface (soft edges:
 a lamp of a few centimetres); on a reduced frame it runs at twice its resolution (``Geometry.fine``) and is
 averaged over each block, since a lever's shadow is a few full-resolution pixels wide. The lamp positions are
-rounded to 1 cm for it (a shadow on the panel then moves by a fraction of a millimetre), so that the
-candidates of a fit share their shadows. No parameter: shadows follow from the geometry and the lamp positions, and
+rounded to 5 cm for it, so that the candidates of a fit share their shadows: a lamp housing is 5-10 cm across
+(its penumbra is wider than what 2.5 cm of position moves), and at 1.3 m moving the lamp by 2.5 cm in x and y
+changed 7 % of the shadows' mass (2-4 % of the panel is in shadow). No parameter: shadows follow from the geometry and the lamp positions, and
 they move with the vehicle, which neither a seafloor, nor a backscatter coefficient, nor a response curve
 does.
 
@@ -66,7 +67,7 @@ SHADOW_T = np.geomspace(0.015, 0.6, 24).astype(np.float32)   # m from the surfac
 SHADOW_BIAS = 0.01         # m, plus SHADOW_PX pixel footprints: no shadow from the surface itself
 SHADOW_PX = 0.75
 SHADOW_THICK = 0.3         # m, the deepest an occluder is assumed to be
-SHADOW_GRID = 0.01         # m, lamp positions rounded for the shadow test (its cache key)
+SHADOW_GRID = 0.05         # m, lamp positions rounded for the shadow test (its cache key): a lamp's own size
 HG_G = 0.9                 # Henyey-Greenstein asymmetry of the veil
 S_MIN, S_MAX, N_S = 0.02, 12.0, 32
 GRID_W = 48
@@ -313,8 +314,8 @@ class ArtificialLight(Effect):
             nL = n[0] * L[0] + n[1] * L[1] + n[2] * L[2]
             lamb = np.clip((nL - st["nX"]) / R, 0.0, 1.0)        # n . (L - X) / R
             g = np.float32(wl * R0 * R0) * rig.beam(cos_t) * lamb / (R * R)
-            # the shadows of a lamp position rounded to SHADOW_GRID (moving a lamp by 5 mm moves a shadow on the
-            # panel by a fraction of a millimetre), kept for many positions: a fit's candidates share them
+            # the shadows of a lamp position rounded to SHADOW_GRID, kept for many positions: a fit's candidates
+            # share them
             Lq = np.round(L / np.float32(SHADOW_GRID)) * np.float32(SHADOW_GRID)
             g *= self._cached(st, "_S", tuple(map(float, Lq)), lambda: self._visibility(st, Lq), entries=64)
             for c in range(3):
