@@ -235,6 +235,30 @@ def test_artificial_light_casts_shadows_that_move_with_the_lamp():
         assert (L[:, (vis == 1) & ~on_block] > fill + 0.1).all()
 
 
+def test_the_shadow_test_skips_only_points_it_would_find_lit(frames, renderer):
+    """The shadow test first drops the points that no occluder can reach (a depth erosion over the lamp's parallax
+    radius): with every point tested instead, the visibility is the same, on the panel near, tilted and far, for
+    lamps beside, above, far to the side of and at the camera, and on two block scenes. (A radius taken from the
+    occluder's thickness, 0.3 m, instead of the deepest sample, fails on the deeper block.)"""
+    from uw_sil.sim.effects.artificial_light import _shadow_grid, _visibility_on
+    from uw_sil.sim.model import Geometry
+
+    cam = renderer.camera
+    grids = [_shadow_grid(Geometry.from_render(rr, cam, T)) for T, rr in frames.values()]
+    cam2 = CameraModel.from_fov(320, 240, 70.0)
+    grids.append(_shadow_grid(_block_scene(cam2)[0]))
+    # a block 0.6 m in front of the wall: its shadow reaches ~50 px from it, found by samples 0.3-0.5 m deep
+    grids.append(_shadow_grid(_block_scene(cam2, z_block=1.4)[0]))
+    shadowed = 0
+    for g in grids:
+        for L in ((0.6, -0.3, 0.0), (-0.35, 0.0, 0.0), (1.5, 0.8, 0.0), (0.0, -0.5, 0.1), (0.0, 0.0, 0.0)):
+            L = np.asarray(L, np.float32)
+            fast = _visibility_on(g, L)
+            np.testing.assert_array_equal(fast, _visibility_on(g, L, prune=False))
+            shadowed += int((fast < 1).sum())
+    assert shadowed > 100                                    # the comparison saw shadows
+
+
 def test_artificial_light_colour_tints_the_lamp_light_and_its_veil(frames, renderer):
     """tint_r / tint_b scale the lamps' light per channel (green is the reference): on the lit panel (I - B) and in
     the veil of open water; with lamps only (fill 0) the panel's red and blue scale by exactly the tint."""

@@ -27,7 +27,7 @@ but the handle hides the lamp from part of it, so each lamp's term is multiplied
 (the fill light is not: it has no direction). The shadow test runs in screen space on the camera's own depth
 map: points on the segment from ``X`` towards ``L_l`` (1.5 cm to 60 cm from the surface) are projected into
 the image, and the point is in shadow when the surface seen there lies in front of the segment by more
-than a bias (1 cm plus 1.5 pixel footprints) and less than 30 cm (a thin object far in front of the segment
+than a bias (1 cm plus 0.75 pixel footprints) and less than 30 cm (a thin object far in front of the segment
 does not hide it). With the lamps within a metre of the camera the occluders of the panel's relief are in
 view, which is what makes the camera's depth map sufficient; what the camera cannot see (the back of an
 object) casts no shadow here. The binary test is averaged over 3x3 pixels of the same surface (soft edges:
@@ -35,9 +35,9 @@ a lamp of a few centimetres); on a reduced frame it runs at twice its resolution
 averaged over each block, since a lever's shadow is a few full-resolution pixels wide. The lamp positions are
 rounded to 5 cm for it, so that the candidates of a fit share their shadows: a lamp housing is 5-10 cm across
 (its penumbra is wider than what 2.5 cm of position moves), and at 1.3 m moving the lamp by 2.5 cm in x and y
-changed 7 % of the shadows' mass (2-4 % of the panel is in shadow). No parameter: shadows follow from the geometry and the lamp positions, and
-they move with the vehicle, which neither a seafloor, nor a backscatter coefficient, nor a response curve
-does.
+changed 7 % of the shadows' mass (2-4 % of the panel is in shadow). No parameter: shadows follow from the
+geometry and the lamp positions, and they move with the vehicle, which neither a seafloor, nor a backscatter
+coefficient, nor a response curve does.
 
 Lamp-lit backscatter (single scattering, the veil in the water, brightest where beams cross the view)::
 
@@ -88,13 +88,16 @@ def _shadow_grid(geom) -> dict:
             "sub": g.shape[0] // geom.shape[0]}
 
 
-def _visibility_on(g: dict, L: np.ndarray) -> np.ndarray:
+def _visibility_on(g: dict, L: np.ndarray, prune: bool = True) -> np.ndarray:
     """The shadow test of the module's docstring on one grid (:func:`_shadow_grid`): (H, W) share of the lamp at
     ``L`` seen from each surface point, 1 where nothing is hit.
 
-    Only points that can be in shadow are tested: an occluder is at most SHADOW_THICK nearer than the point
-    and, seen from the camera, at most ``fx |L_xy| SHADOW_THICK / z^2`` pixels away from it (the parallax of the
-    lamp's offset), so a point with no pixel at least the bias nearer within that radius is lit."""
+    Only points that can be in shadow are tested: a point ``X`` at depth ``z`` is shadowed by a surface seen where
+    a sample ``t`` along its way to the lamp projects, at least the bias nearer than ``X``; with the lamp in the
+    camera's plane (``L_z = 0``) a sample ``d`` nearer than ``X`` projects ``fx |L_xy| d / (z (z - d))`` pixels
+    from it, and ``d <= t <= max(SHADOW_T)``, so a point with no pixel at least the bias nearer within that
+    radius (taken at the nearest depth of the view) is lit: the pruning drops only points the test would find
+    lit (``prune=False`` tests every point, for the test that checks this)."""
     z, hit, X = g["z"], g["hit"], g["X"]
     h, w = z.shape
     fx, fy, cx, cy = g["K"]
@@ -102,12 +105,15 @@ def _visibility_on(g: dict, L: np.ndarray) -> np.ndarray:
     if not hit.any():
         return vis
     zmin = float(z[hit].min())
-    r = int(math.ceil(max(fx, fy) * math.hypot(float(L[0]), float(L[1])) * SHADOW_THICK / (zmin * zmin))) + 2
+    tmax = float(SHADOW_T[-1])
+    lxy = math.hypot(float(L[0]), float(L[1])) + abs(float(L[2]))     # (L_z: lamps ahead or behind the camera)
+    gap = zmin - tmax
+    r = max(h, w) if gap <= 0.05 else int(math.ceil(max(fx, fy) * lxy * tmax / (zmin * gap))) + 2
     r = min(r, max(h, w))
     zfin = np.where(hit, z, np.float32(1e6)).astype(np.float32)
     near = cv2.erode(zfin, cv2.getStructuringElement(cv2.MORPH_RECT, (2 * r + 1, 2 * r + 1)),
                      borderType=cv2.BORDER_CONSTANT, borderValue=1e6)
-    cand = hit & (near < z - np.float32(SHADOW_BIAS))
+    cand = hit & (near < z - np.float32(SHADOW_BIAS)) if prune else hit
     idx = np.flatnonzero(cand)
     if idx.size:
         Xc = [X[k].ravel()[idx] for k in range(3)]
@@ -325,8 +331,8 @@ class ArtificialLight(Effect):
     @staticmethod
     def _visibility(st, L) -> np.ndarray:
         """(H, W) share of the lamp at ``L`` seen from each surface point (1 on pixels without a hit): the
-        screen-space shadow test of the module's docstring, on whole planes (one depth lookup per step), at the
-        shadow grid's resolution and averaged over the hit pixels of each block."""
+        screen-space shadow test of the module's docstring at the shadow grid's resolution, averaged over the hit
+        pixels of each block."""
         g = st["shadow"]
         vis = _visibility_on(g, np.asarray(L, np.float32))
         if g["sub"] == 1:
