@@ -120,6 +120,8 @@ class ReducedFrame:
         if self.factor < 2:
             return None
         g = self.extra.get("fine_geometry")
+        if g is False:
+            return None
         if g is None:
             from ..sim.model import Geometry
 
@@ -137,7 +139,8 @@ class ReducedFrame:
             cam = self.frame.camera.scaled(1.0 / f) if f > 1 else self.frame.camera
             g = Geometry(cam, np.zeros((h, w, 3), np.float32), dep, rng, part_ids=parts, pose=self.frame.pose)
             if g.shape != (2 * self.shape[0], 2 * self.shape[1]):
-                return None                          # a frame whose size is not a multiple of the factor
+                self.extra["fine_geometry"] = False  # an odd factor, or a size not a multiple of it
+                return None
             self.extra["fine_geometry"] = g
         return g
 
