@@ -126,16 +126,8 @@ class ReducedFrame:
             from ..sim.model import Geometry
 
             f = self.factor // 2
-            rr = self.frame.render
-            hit = np.isfinite(rr.range) & np.isfinite(rr.depth)
-            cover = box_down(hit, f)
-            safe = np.maximum(cover, 1e-6)
-            none = cover <= 0
-            dep = np.where(none, np.inf, box_down(np.where(hit, rr.depth, 0.0), f) / safe).astype(np.float32)
-            rng = np.where(none, np.inf, box_down(np.where(hit, rr.range, 0.0), f) / safe).astype(np.float32)
+            hit, cover, dep, rng, parts = _block_geometry(self.frame.render, f)
             h, w = cover.shape
-            c = f // 2
-            parts = rr.part_ids[c:h * f:f, c:w * f:f][:h, :w]
             cam = self.frame.camera.scaled(1.0 / f) if f > 1 else self.frame.camera
             g = Geometry(cam, np.zeros((h, w, 3), np.float32), dep, rng, part_ids=parts, pose=self.frame.pose)
             if g.shape != (2 * self.shape[0], 2 * self.shape[1]):
@@ -163,24 +155,33 @@ def erode(mask: np.ndarray, r: int) -> np.ndarray:
     return cv2.erode(mask.astype(np.uint8), k, borderValue=1) > 0
 
 
+def _block_geometry(rr, f: int) -> tuple:
+    """A render's geometry box-downsampled by ``f``: ``(hit, cover, depth, range, part_ids)`` with the full-resolution
+    hit mask, the share of each block on the model, depth and range averaged over the block's model pixels
+    (``inf`` where it has none, float32) and the part of the block's centre pixel."""
+    hit = np.isfinite(rr.range) & np.isfinite(rr.depth)
+    cover = box_down(hit, f)
+    safe = np.maximum(cover, 1e-6)
+    none = cover <= 0
+    dep = np.where(none, np.inf, box_down(np.where(hit, rr.depth, 0.0), f) / safe).astype(np.float32)
+    rng = np.where(none, np.inf, box_down(np.where(hit, rr.range, 0.0), f) / safe).astype(np.float32)
+    h, w = cover.shape
+    c = f // 2
+    return hit, cover, dep, rng, rr.part_ids[c:h * f:f, c:w * f:f][:h, :w]
+
+
 def reduce_frame(frame: DiagFrame, factor: int, water_margin: int = 2) -> ReducedFrame:
     """Box-downsample a frame and its render (see :class:`ReducedFrame`)."""
     rr = frame.render
-    hit = np.isfinite(rr.range) & np.isfinite(rr.depth)
     f = int(factor)
-    cover = box_down(hit, f)
+    hit, cover, dep, rng, parts_c = _block_geometry(rr, f)
     safe = np.maximum(cover, 1e-6)
-    rgb = box_down(np.where(hit[..., None], rr.rgb, 0.0), f) / safe[..., None]
-    rng = box_down(np.where(hit, rr.range, 0.0), f) / safe
-    dep = box_down(np.where(hit, rr.depth, 0.0), f) / safe
     none = cover <= 0
+    rgb = box_down(np.where(hit[..., None], rr.rgb, 0.0), f) / safe[..., None]
     rgb[none] = 0.0
-    rng[none] = np.inf
-    dep[none] = np.inf
     h, w = cover.shape
     c = f // 2
     labels_c = rr.labels[c:h * f:f, c:w * f:f][:h, :w]
-    parts_c = rr.part_ids[c:h * f:f, c:w * f:f][:h, :w]
     labels = np.where(cover >= 0.5, labels_c, 0).astype(np.uint8)
     # pure blocks: one part over the whole block (no silhouette, no part boundary inside)
     pmax = rr.part_ids[:h * f, :w * f].reshape(h, f, w, f).max(axis=(1, 3))
@@ -193,8 +194,8 @@ def reduce_frame(frame: DiagFrame, factor: int, water_margin: int = 2) -> Reduce
     n_full = Geometry.from_render(rr, frame.camera, frame.pose).normals
     normals = box_down(np.where(hit[..., None], n_full, 0.0), f) / safe[..., None]
     normals[none] = 0.0
-    return ReducedFrame(frame, f, box_down(frame.image, f), rgb.astype(np.float32), cover, rng.astype(np.float32),
-                        dep.astype(np.float32), labels, parts_c.astype(np.uint16), obj, water,
+    return ReducedFrame(frame, f, box_down(frame.image, f), rgb.astype(np.float32), cover, rng, dep, labels,
+                        parts_c.astype(np.uint16), obj, water,
                         camera=frame.camera.scaled(1.0 / f) if f > 1 else frame.camera,
                         normals=normals.astype(np.float32))
 

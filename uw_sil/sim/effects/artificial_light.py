@@ -75,16 +75,16 @@ GRID_MIN = 12
 LN2 = math.log(2.0)
 
 
-def _shadow_grid(geom) -> dict:
+def _shadow_grid(geom, planes=None) -> dict:
     """What the screen-space shadow test needs, on ``geom.fine`` where there is one: depth map (inf where
-    nothing is hit), hit mask, surface points as planes, part ids, intrinsics and the block size ``sub``."""
-    fine = getattr(geom, "fine", None)
-    g = fine if fine is not None else geom
+    nothing is hit), hit mask, surface points as planes (``planes``: those of ``geom`` where already split),
+    part ids, intrinsics and the block size ``sub``."""
+    g = geom.fine if geom.fine is not None else geom
     cam = g.camera
-    X = g.X
-    return {"z": np.where(g.hit, g.depth, np.float32(np.inf)).astype(np.float32), "hit": g.hit,
-            "X": [np.ascontiguousarray(X[..., k]) for k in range(3)], "parts": np.ascontiguousarray(g.part_ids),
-            "K": tuple(float(v) for v in (cam.fx, cam.fy, cam.cx, cam.cy)),
+    if g is not geom or planes is None:
+        planes = [np.ascontiguousarray(g.X[..., k]) for k in range(3)]
+    return {"z": np.where(g.hit, g.depth, np.float32(np.inf)).astype(np.float32), "hit": g.hit, "X": planes,
+            "parts": np.ascontiguousarray(g.part_ids), "K": tuple(float(v) for v in (cam.fx, cam.fy, cam.cx, cam.cy)),
             "sub": g.shape[0] // geom.shape[0]}
 
 
@@ -115,32 +115,31 @@ def _visibility_on(g: dict, L: np.ndarray, prune: bool = True) -> np.ndarray:
                      borderType=cv2.BORDER_CONSTANT, borderValue=1e6)
     cand = hit & (near < z - np.float32(SHADOW_BIAS)) if prune else hit
     idx = np.flatnonzero(cand)
-    if idx.size:
-        Xc = [X[k].ravel()[idx] for k in range(3)]
-        D = [np.float32(L[k]) - Xc[k] for k in range(3)]
-        dist = np.sqrt(D[0] * D[0] + D[1] * D[1] + D[2] * D[2])
-        inv = np.float32(1.0) / np.maximum(dist, np.float32(1e-6))
-        for k in range(3):
-            D[k] *= inv
-        zflat = zfin.ravel()
-        shadow = np.zeros(idx.size, bool)
-        for t in SHADOW_T:
-            t = np.float32(t)
-            S2 = np.maximum(Xc[2] + t * D[2], np.float32(1e-3))
-            u = np.rint((Xc[0] + t * D[0]) / S2 * np.float32(fx) + np.float32(cx))
-            v = np.rint((Xc[1] + t * D[1]) / S2 * np.float32(fy) + np.float32(cy))
-            ok = (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1) & (dist > np.float32(1.5) * t)
-            # outside the image, or the lamp itself: no shadow; water reads as far away (1e6 m)
-            zq = zflat[np.where(ok, v * w + u, 0).astype(np.int64)]
-            zq += np.float32(SHADOW_BIAS)
-            zq += S2 * np.float32(SHADOW_PX / fx)
-            shadow |= ok & (zq < S2) & (zq > S2 - np.float32(SHADOW_THICK - SHADOW_BIAS))
-        vis.ravel()[idx[shadow]] = 0.0
-    else:
+    if idx.size == 0:
         return vis
+    Xc = [X[k].ravel()[idx] for k in range(3)]
+    D = [np.float32(L[k]) - Xc[k] for k in range(3)]
+    dist = np.sqrt(D[0] * D[0] + D[1] * D[1] + D[2] * D[2])
+    inv = np.float32(1.0) / np.maximum(dist, np.float32(1e-6))
+    for k in range(3):
+        D[k] *= inv
+    zflat = zfin.ravel()
+    shadow = np.zeros(idx.size, bool)
+    for t in SHADOW_T:
+        t = np.float32(t)
+        S2 = np.maximum(Xc[2] + t * D[2], np.float32(1e-3))
+        u = np.rint((Xc[0] + t * D[0]) / S2 * np.float32(fx) + np.float32(cx))
+        v = np.rint((Xc[1] + t * D[1]) / S2 * np.float32(fy) + np.float32(cy))
+        ok = (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1) & (dist > np.float32(1.5) * t)
+        # outside the image, or the lamp itself: no shadow; water reads as far away (1e6 m)
+        zq = zflat[np.where(ok, v * w + u, 0).astype(np.int64)]
+        zq += np.float32(SHADOW_BIAS)
+        zq += S2 * np.float32(SHADOW_PX / fx)
+        shadow |= ok & (zq < S2) & (zq > S2 - np.float32(SHADOW_THICK - SHADOW_BIAS))
     dark = idx[shadow]
     if dark.size == 0:
         return vis
+    vis.ravel()[dark] = 0.0
     # soft edges: the mean over the 3x3 pixels of the same surface part, in the box around the shadows
     # (the box's outer ring only feeds the pixels next to it; the image's border pads as another part)
     rows, cols = dark // w, dark % w
@@ -244,9 +243,8 @@ class ArtificialLight(Effect):
         st["n"] = [np.ascontiguousarray(n[..., k]) for k in range(3)]
         st["X2"] = np.einsum("hwk,hwk->hw", X, X)
         st["nX"] = np.einsum("hwk,hwk->hw", n, X)
-        # cast shadows: the camera's depth map and the surface points it sees, for the screen-space test, at the
-        # finer resolution where the geometry has one (averaged over each block afterwards)
-        st["shadow"] = _shadow_grid(geom)
+        # cast shadows: built on the first shadow test (the geometry, or its finer view, see _shadow_grid)
+        st["geom"] = geom
         # veil: a coarse grid of unit viewing directions and log-spaced distances along them
         gw = min(w, GRID_W, max(GRID_MIN, w // 4))     # the veil is smooth: a quarter of the columns suffices
         gh = min(h, max(2, int(round(gw * h / w)))) if h > 1 else 1
@@ -290,8 +288,7 @@ class ArtificialLight(Effect):
         if hit is None:
             hit = compute()
             hit.setflags(write=False)
-            room = min(self.cache_entries if entries is None else min(entries, self.cache_entries * 8),
-                       self.CACHE_BYTES // max(hit.nbytes, 1))
+            room = min(self.cache_entries if entries is None else entries, self.CACHE_BYTES // max(hit.nbytes, 1))
             while cache and len(cache) >= room:
                 cache.pop(next(iter(cache)))         # least recently used first
         if self.cache_entries > 0:
@@ -333,7 +330,9 @@ class ArtificialLight(Effect):
         """(H, W) share of the lamp at ``L`` seen from each surface point (1 on pixels without a hit): the
         screen-space shadow test of the module's docstring at the shadow grid's resolution, averaged over the hit
         pixels of each block."""
-        g = st["shadow"]
+        g = st.get("shadow")
+        if g is None:
+            g = st["shadow"] = _shadow_grid(st["geom"], st["X"])
         vis = _visibility_on(g, np.asarray(L, np.float32))
         if g["sub"] == 1:
             return vis
