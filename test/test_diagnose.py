@@ -386,6 +386,53 @@ def test_backward_elimination_also_tests_the_last_effect_and_drops_the_weakest(b
     assert not [k for k in doc["final"]["params"] if k.startswith("artificial_light.")]
 
 
+@pytest.mark.parametrize("together", [True, False])
+def test_backward_elimination_keeps_effects_that_help_only_together(monkeypatch, together):
+    """Effects removed one at a time can each look useless where together they are not (a physically lit dive:
+    forward scatter dropped first, then the lamps at 0.85 of their margin, although the model with both scored
+    0.010 more held out). Held-out θ per frame planted for every model: without F the model loses
+    [-0.01, 0.01, -0.01, 0.01] (nothing), without A then [0.02, 0, 0.02, 0] (too uneven for its margin), but
+    without both [0.01] x 4 (a consistent loss, far beyond its margin): A must stay. When the two together lose
+    nothing (``together=False``) A goes as before."""
+    from dataclasses import dataclass as _dc
+
+    import uw_sil.fit.diagnose as dg
+    from uw_sil.fit.judges.base import Current
+
+    A, C, F = "artificial_light", "camera_response", "forward_scatter"
+    T = np.full(4, 0.80)
+    held = {frozenset({A, C, F}): T,
+            frozenset({A, C}): T - [-0.01, 0.01, -0.01, 0.01],
+            frozenset({C, F}): T - [0.05, -0.01, 0.05, -0.01],
+            frozenset({A, F}): T - 0.05,
+            frozenset({C}): T - ([0.01] * 4 if together else [0.0, 0.002, 0.0, 0.002]),
+            frozenset({A}): T - 0.06}
+
+    def model(effects):
+        effects = tuple(e for e in (A, C, F) if e in effects)
+        return Current(effects=effects, values={e: {} for e in effects}, base=np.zeros(7), theta_fit=0.9,
+                       sel_pf=np.asarray(held[frozenset(effects)], float), ls_sel_E=np.ones(4))
+
+    monkeypatch.setattr(dg, "_without_one", lambda shared, e: (model(set(shared[1].effects) - {e}), 0.0))
+
+    @_dc
+    class Job:
+        max_iter: int = 30
+        interrupt: object = None
+
+    accepted = [{"effect": e} for e in (A, C, F)]
+    candidates, steps, said = [], [], []
+    current, dropped = dg._eliminate(Job(), model({A, C, F}), accepted, 0, said.append, candidates, steps, {}, {})
+    assert dropped
+    assert [s["chosen"] for s in steps if s["chosen"]] == ["-" + F] + ([] if together else ["-" + A]), said
+    assert current.effects == ((A, C) if together else (C,))
+    assert [a["effect"] for a in accepted] == ([A, C] if together else [C])
+    joint = [s["joint"] for s in steps if "joint" in s]
+    assert [(j["without"], j["kept"]) for j in joint] == [([A, F], together)], joint
+    if together:
+        assert any(line.startswith(f"elimination: {A} kept: without {A} and {F} together") for line in said), said
+
+
 def test_a_plausible_explanation_is_chosen_before_a_stretched_one(bags, monkeypatch):
     """Among the candidates a round accepts, one whose fitted values sit on their bounds or outside deep-sea
     ranges (a doubt) ranks after every plausible one, whatever its strength: plant a doubt on vignetting (the true
