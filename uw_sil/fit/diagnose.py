@@ -32,6 +32,7 @@ camera info and panel poses, and the scene model; never a ground-truth sidecar):
    dropped, and the smaller model is tested again (a lamp footprint first taken for vignetting, then
    explained by the lamps), provided the effects dropped so far and it, removed together, do not lose beyond
    the margin against the model the elimination started from (effects that only help together stay).
+   The selected model is then polished one effect at a time (:func:`uw_sil.fit.judges.base.polish_blocks`).
 5. **effects new in every frame** (particles, temporal noise) are judged last, on held-out *statistics*
    (speck density, noise level, correlation and fixed patterns): a pixel-wise θ cannot rise for them.
 6. **say it**: a plain-language verdict with numbers and doubts (parameters on a bound or outside deep-sea
@@ -569,8 +570,8 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
     from ..sim.params import ParamSpace
     from .backward import linear_start
     from .judges import JUDGES, Current, Job, margin_for
-    from .judges.base import (current_ls, gain_words, least_squares_model, residual_gain, residual_improvement,
-                              with_effect)
+    from .judges.base import (current_ls, gain_words, least_squares_model, polish_blocks, residual_gain,
+                              residual_improvement, with_effect)
     from .residuals import added_surface
     from .screening import screen_proxies
     from .signatures import SignatureContext, run_signatures
@@ -763,6 +764,25 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
         # a dropped effect frees a place: the forward selection goes on from the smaller model
         if not (dropped and pool and len(accepted) < max_effects):
             break
+
+    # ---------------------------------------------------------------- the selected model polished effect by effect
+    if len(current.effects) > 1:
+        t0 = time.perf_counter()
+        before = float(current.sel_pf.mean())
+        say(f"polishing {current.name} one effect at a time on the fit frames")
+        current, polished = polish_blocks(job, current, max_iter=min(job.max_iter, CHEAP_ITER), pool=workers)
+        for st in polished:
+            say(f"polish: {st['effect']} " + (f"θ on the fit frames {st['theta_fit_before']:.4f} -> "
+                                              f"{st['theta_fit_after']:.4f}" if st["kept"] else "unchanged"))
+        steps.append({"round": "polish", "model": current.name, "theta_heldout": float(current.sel_pf.mean()),
+                      "residual_heldout": float(np.mean(current.ls_sel_E)), "theta_train": current.theta_fit,
+                      "tried": [st["effect"] for st in polished], "chosen": None,
+                      "time_s": time.perf_counter() - t0, "polish": polished})
+        if any(st["kept"] for st in polished):
+            say(f"polish: held-out θ {before:.4f} -> {current.sel_pf.mean():.4f}")
+            fits[current.name] = {**fits.get(current.name, {}), "x": current.x, "held_pf": np.asarray(current.sel_pf),
+                                  "model": current.model, "model_effects": list(current.effects)}
+        timing["polish_s"] = time.perf_counter() - t0
 
     # ---------------------------------------------------------------- effects new in every frame: statistics
     t0 = time.perf_counter()

@@ -531,6 +531,49 @@ def with_effect(current: Current, r: Refit) -> Current:
                    ls_params=r.extra.get("ls_params"), ls_sel_E=r.extra.get("ls_sel_E"))
 
 
+def polish_blocks(job: Job, current: Current, max_iter: int, pool=None) -> tuple:
+    """The selected model polished one effect at a time: CMA-ES on the free parameters of one effect with
+    everything else held, effect after effect, on the fit frames (high resolution, θ as every model is compared),
+    each step kept only if it raises θ there. Returns ``(current, steps)``: the polished model with its θ per
+    held-out frame, and per effect ``{"effect", "theta_fit_before", "theta_fit_after", "kept"}``.
+
+    Why: an effect accepted early was fitted in a model that lacked the later ones, and the joint refits that
+    follow start from its values; a joint CMA-ES over 30 parameters barely moves them. Measured on the own
+    4-effect dive (lamps, β_B≠β_D, camera response, forward scatter): the true parameters score θ 0.957 on the fit
+    frames where the selection's model scored 0.946; a joint restart (step 0.2, 16 per generation) ended at
+    0.947, while CMA-ES on the three forward-scatter parameters alone reached 0.951-0.952 from each of three
+    starts (held-out 0.946 -> 0.949-0.952)."""
+    names = tuple(current.effects)
+    if not names or current.x is None or current.model is None:
+        return current, []
+    rfit = job.reduced(job.fit_f, "high")
+    model = current.model.like(rfit, seed=job.seed)
+    noise = noise_sigmas(rfit)
+    x = np.asarray(current.x, float).copy()
+    sigma = _sigma0([job.judges[e] for e in names])
+    steps = []
+    with FrameObjective(rfit, model, noise, seed=job.seed, batch=job.popsize, pool=pool) as ob:
+        best = float(ob(x[None])[0])
+        for e in names:
+            fixed = np.ones(x.size, bool)
+            fixed[model.free_index(e)] = False
+            fit = fit_model(model, rfit, noise, x, sigma0=sigma, seed=job.seed, max_iter=max_iter,
+                            popsize=job.popsize, patience=job.patience, interrupt=job.interrupt, objective=ob,
+                            fixed=fixed)
+            kept = bool(fit.theta_train > best)
+            steps.append({"effect": e, "theta_fit_before": best, "theta_fit_after": float(fit.theta_train),
+                          "kept": kept})
+            if kept:
+                x, best = fit.x, float(fit.theta_train)
+    if not any(st["kept"] for st in steps):
+        return current, steps
+    p = model.params_of(x)
+    sel_pf = job.frame_theta(current.model, job.sel_f, x, seed_offset=50)[0]
+    return replace(current, values={e: dict(p["effects"][e]) for e in names},
+                   base=np.array(list(p["base"].values()), float), theta_fit=best, sel_pf=np.asarray(sel_pf, float),
+                   x=x), steps
+
+
 def refit_without(job: Job, current: Current, e: str, ls_nfev: Optional[int] = None) -> Optional[Current]:
     """The current model without its effect ``e``, refitted jointly: the generic refit of its last other effect
     on top of the rest, started at the current values (θ) and at the current least-squares optimum without
