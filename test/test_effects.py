@@ -259,6 +259,33 @@ def test_the_shadow_test_skips_only_points_it_would_find_lit(frames, renderer):
     assert shadowed > 100                                    # the comparison saw shadows
 
 
+def test_artificial_light_tilt_aims_the_beam_below_the_optical_axis():
+    """``tilt`` pitches the beam axes (y down): on a wall 2 m ahead, one narrow lamp beside the camera lights the
+    wall brightest where its axis meets it, ``2 tan(tilt)`` below the lamp's height, i.e. ``fy tan(tilt)`` pixels
+    below the principal point (within 4 px: the 1/R² and Lambert terms pull the peak a little towards the lamp);
+    the column of the peak stays the lamp's; ``tilt`` 0 keeps the beam level. The veil follows the beam: more of it
+    below the principal point than above when the beam is aimed down."""
+    from uw_sil.sim.effects.artificial_light import ArtificialLight, LampRig
+
+    cam = CameraModel.from_fov(320, 240, 70.0)
+    geom = _block_scene(cam, half=0.0)[0]                    # the wall alone
+    eff = ArtificialLight()
+    st = eff.prepare(geom, cam)
+    vals = {p.name: p.default for p in eff.params}
+    vals.update(offset_x=0.3, offset_y=0.0, balance=0.0, half_angle=0.15, shape=2.0, power=1.0, fill=0.0)
+    a = np.zeros(3, np.float32)
+    col = int(round(cam.cx + cam.fx * 0.3 / 2.0))            # the lamp's column on the wall
+    for tilt in (0.0, 0.25, -0.2):
+        L = eff.illumination(st, LampRig({**vals, "tilt": tilt}), a)[1]
+        r, c = np.unravel_index(int(np.argmax(L)), L.shape)
+        assert abs(r - (cam.cy + cam.fy * np.tan(tilt))) <= 4, (tilt, r)
+        assert abs(c - col) <= 4, (tilt, c)
+    V = {t: eff.veil_field(st, LampRig({**vals, "tilt": t}), a, 0.05)[1] for t in (0.0, 0.3)}
+    half = cam.height // 2
+    low, high = (V[0.3][half:].sum() / V[0.3][:half].sum()), (V[0.0][half:].sum() / V[0.0][:half].sum())
+    assert low > 1.2 * high, (low, high)
+
+
 def test_artificial_light_colour_tints_the_lamp_light_and_its_veil(frames, renderer):
     """tint_r / tint_b scale the lamps' light per channel (green is the reference): on the lit panel (I - B) and in
     the veil of open water; with lamps only (fill 0) the panel's red and blue scale by exactly the tint."""

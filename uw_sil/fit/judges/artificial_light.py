@@ -20,7 +20,7 @@ class ArtificialLightJudge(Judge):
     # (fixed at 1, a foreign rig normalized at 2.5 m instead of 2 m could not be fitted)
     # the lamps' colour (tint) too: a white LED is not the white light the renders assume, and a colour the lamp
     # model cannot take is left to a per-channel gain of the camera response, named beside the lamps
-    free = ("offset_x", "offset_y", "toe_in", "half_angle", "shape", "balance", "fill", "power", "veil", "tint_r",
+    free = ("offset_x", "offset_y", "toe_in", "tilt", "half_angle", "shape", "balance", "fill", "power", "veil", "tint_r",
             "tint_b")
     res = "low"
     cost = 9.0
@@ -61,9 +61,11 @@ class ArtificialLightJudge(Judge):
                     f"light, {other})")
         else:
             lamp = f"a lamp about {off:.2f} m {side} of the camera"
+        tilt = math.degrees(e.get("tilt", 0.0))
+        aim = f", aimed {abs(tilt):.0f}° {'below' if tilt > 0 else 'above'} the optical axis" if abs(tilt) >= 3 else ""
         return (f"the recording is lit by vehicle lamps the simulation lacks: brightness on the panel falls "
                 f"~1/r² from {lamp} ({100 * (1 - e.get('fill', 1)):.0f} % of the light from the lamps, beam half "
-                f"width {math.degrees(e.get('half_angle', 0)):.0f}°{self._colour(e)}); {gain}")
+                f"width {math.degrees(e.get('half_angle', 0)):.0f}°{aim}{self._colour(e)}); {gain}")
 
     @staticmethod
     def _colour(e) -> str:

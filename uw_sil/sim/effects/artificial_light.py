@@ -3,8 +3,9 @@
 The base model (and the renderer's shading) assume light that does not depend on where a surface is. At
 depth the only light is the vehicle's: lamp ``l`` at ``L_l`` in the camera frame (lamp 1 at
 ``(offset_x, offset_y, 0)``, lamp 2 mirrored at ``(-offset_x, offset_y, 0)``, weights ``1 - balance``
-and ``balance``; beam axes turned towards the optical axis by ``toe_in``) gives a surface point ``X``
-with normal ``n`` the relative irradiance::
+and ``balance``; beam axes turned towards the optical axis by ``toe_in`` and pitched down by ``tilt``: an ROV's
+lamps are aimed at the work area in front of and below the camera, ``(-+sin(toe_in) cos(tilt), sin(tilt),
+cos(toe_in) cos(tilt))``, y down) gives a surface point ``X`` with normal ``n`` the relative irradiance::
 
     E_c(X) = sum_l w_l P(theta_l) max(0, n . (L_l - X) / R_l) (R0 / R_l)^2 exp(-a_c (R_l - R0))
     P(theta) = exp(-ln 2 (theta / half_angle)^shape)              (beam profile, theta off the lamp axis)
@@ -168,11 +169,12 @@ class LampRig:
     """Lamp positions, axes, weights and beam of one parameter set (camera optical frame)."""
 
     def __init__(self, values):
-        ox, oy, toe = values["offset_x"], values["offset_y"], values["toe_in"]
+        ox, oy, toe, tilt = values["offset_x"], values["offset_y"], values["toe_in"], values["tilt"]
         sgn = 1.0 if ox >= 0 else -1.0
         st, ct = math.sin(toe), math.cos(toe)
+        sp, cp = math.sin(tilt), math.cos(tilt)
         self.pos = np.array([[ox, oy, 0.0], [-ox, oy, 0.0]], np.float32)
-        self.axis = np.array([[-sgn * st, 0.0, ct], [sgn * st, 0.0, ct]], np.float32)
+        self.axis = np.array([[-sgn * st * cp, sp, ct * cp], [sgn * st * cp, sp, ct * cp]], np.float32)
         wb = values["balance"]
         self.weights = [(0, 1.0 - wb), (1, wb)] if wb > 0 else [(0, 1.0)]
         self.half = np.float32(values["half_angle"])
@@ -182,7 +184,7 @@ class LampRig:
         # the lamps' colour against the light the renders assume (white): per-channel gain, green 1
         self.tint = np.array([values["tint_r"], 1.0, values["tint_b"]], np.float32)
         # what the shape of the light depends on (power, fill, veil and tint only scale it)
-        self.key = (float(ox), float(oy), float(toe), float(values["half_angle"]), float(values["shape"]), float(wb))
+        self.key = (float(ox), float(oy), float(toe), float(tilt), float(values["half_angle"]), float(values["shape"]), float(wb))
 
     def beam(self, cos_theta):
         theta = np.arccos(np.clip(cos_theta, -1.0, 1.0))
@@ -211,6 +213,7 @@ class ArtificialLight(Effect):
         EffectParam("offset_x", 0.3, -1.5, 1.5, "m", "lamp 1 position right of the camera (lamp 2 at -offset_x)"),
         EffectParam("offset_y", -0.2, -1.0, 1.0, "m", "lamp height in the optical frame (y down: < 0 is above)"),
         EffectParam("toe_in", 0.0, -0.5, 0.8, "rad", "beam axes turned towards the optical axis"),
+        EffectParam("tilt", 0.0, -0.6, 0.6, "rad", "beam axes pitched down (y down: > 0 aims below the optical axis)"),
         EffectParam("half_angle", 0.6, 0.15, 1.4, "rad", "beam half width at half maximum"),
         EffectParam("shape", 2.0, 0.5, 8.0, "", "beam profile exponent: exp(-ln2 (theta/half_angle)^shape)"),
         EffectParam("balance", 0.5, 0.0, 0.5, "", "share of lamp 2 (0: one lamp, 0.5: a symmetric pair)"),
