@@ -51,8 +51,17 @@ class Workspace:
     status_before: str
     status_after: str
 
+    @property
+    def tmp(self) -> Path:
+        """The temporary directory of the ``ros2`` processes: launch_ros writes a ``launch_params_*`` file for each
+        node given parameters as a dict and never deletes it (upstream ``delete=False``); here they go into the test
+        run's own temporary tree (pytest keeps the last three) instead of piling up in ``/tmp``."""
+        d = self.install.parent / "tmp"
+        d.mkdir(exist_ok=True)
+        return d
+
     def env(self, domain: int) -> dict:
-        env = ros_env(domain, base=self.sourced)
+        env = ros_env(domain, base=self.sourced, TMPDIR=str(self.tmp))
         env["ROS_LOG_DIR"] = str(self.install.parent / "ros_log")
         return env
 
@@ -198,6 +207,8 @@ def test_ros2_launch_backward_fits_and_ends_by_itself(ws, trial, tmp_path):
     assert_clean_output(text, "ros2 launch")
     params = yaml.safe_load(fit_yaml.read_text())["/**"]["ros__parameters"]
     assert set(params) == {"a_r", "a_g", "a_b", "b_r", "b_g", "b_b", "rho_f", "fog_mode", "noise_sigma"}
+    # launch_ros's parameter files landed in the run's temporary tree (Workspace.tmp), not in /tmp
+    assert list(ws.tmp.glob("launch_params_*")), sorted(p.name for p in ws.tmp.iterdir())
 
 
 def test_ros2_launch_ends_with_a_failed_node_and_names_bad_arguments(ws, tmp_path):
