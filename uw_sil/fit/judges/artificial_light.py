@@ -20,8 +20,8 @@ class ArtificialLightJudge(Judge):
     # (fixed at 1, a foreign rig normalized at 2.5 m instead of 2 m could not be fitted)
     # the lamps' colour (tint) too: a white LED is not the white light the renders assume, and a colour the lamp
     # model cannot take is left to a per-channel gain of the camera response, named beside the lamps
-    free = ("offset_x", "offset_y", "toe_in", "tilt", "half_angle", "shape", "balance", "fill", "power", "veil", "tint_r",
-            "tint_b")
+    free = ("offset_x", "offset_y", "toe_in", "tilt", "half_angle", "shape", "balance", "fill", "power", "veil",
+            "tint_r", "tint_b")
     res = "low"
     cost = 9.0
     residual_evidence = True

@@ -184,7 +184,8 @@ class LampRig:
         # the lamps' colour against the light the renders assume (white): per-channel gain, green 1
         self.tint = np.array([values["tint_r"], 1.0, values["tint_b"]], np.float32)
         # what the shape of the light depends on (power, fill, veil and tint only scale it)
-        self.key = (float(ox), float(oy), float(toe), float(tilt), float(values["half_angle"]), float(values["shape"]), float(wb))
+        self.key = (float(ox), float(oy), float(toe), float(tilt), float(values["half_angle"]), float(values["shape"]),
+                    float(wb))
 
     def beam(self, cos_theta):
         theta = np.arccos(np.clip(cos_theta, -1.0, 1.0))
