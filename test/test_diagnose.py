@@ -433,6 +433,58 @@ def test_backward_elimination_keeps_effects_that_help_only_together(monkeypatch,
         assert any(line.startswith(f"elimination: {A} kept: without {A} and {F} together") for line in said), said
 
 
+def test_backward_elimination_takes_no_earlier_fit_that_holds_an_effect_neutral(monkeypatch):
+    """The model without an effect is the better, on the fit frames, of the elimination's refit and the forward
+    selection's fit of the same effect set, but a fit that holds one of its effects at its neutral values is a fit
+    of a smaller model. Planted (as on a physically lit dive, where the lamps were accepted by the held-out
+    residual and their round-1 θ refit had stayed at the base model): the earlier fit of {lamps} has the lamps
+    neutral (fill 1, veil 0) and a higher θ on the fit frames than the elimination's refit; the earlier fit of
+    {forward scatter} has forward scatter at work. Only the second may stand in for its refit."""
+    from dataclasses import dataclass as _dc
+
+    import uw_sil.fit.diagnose as dg
+    import uw_sil.fit.judges.base as jb
+    from uw_sil.fit.judges.base import Current, Refit
+    from uw_sil.sim.effects import get_effect
+
+    A, F = "artificial_light", "forward_scatter"
+    lamps = {**get_effect(A).defaults(), "fill": 0.4, "veil": 0.01}
+    blur = {**get_effect(F).defaults(), **get_effect(F).severities["strong"]}
+    values = {A: lamps, F: blur}
+    assert dg.held_neutral(values) == [] and dg.held_neutral({A: get_effect(A).defaults()}) == [A]
+
+    def model(effects, theta_fit=0.80):
+        effects = tuple(e for e in (A, F) if e in effects)
+        return Current(effects=effects, values={e: values[e] for e in effects}, base=np.zeros(7), theta_fit=theta_fit,
+                       sel_pf=np.full(4, 0.80 + 0.01 * len(effects)), ls_sel_E=np.ones(4))
+
+    def earlier_fit(e, vals):
+        return Refit(effect=e, effects=(e,), x=np.zeros(7), params={"base": {}, "effects": {e: vals}}, theta_fit=0.85,
+                     sel_pf=np.full(4, 0.81), extra={"ls_sel_E": np.ones(4)})
+
+    earlier = {frozenset({A}): (model(()), earlier_fit(A, get_effect(A).defaults())),
+               frozenset({F}): (model(()), earlier_fit(F, blur))}
+    taken = []
+
+    def with_effect(cur, r):
+        taken.append(r.effect)
+        return model(r.effects, r.theta_fit)
+
+    monkeypatch.setattr(dg, "_without_one", lambda shared, e: (model(set(shared[1].effects) - {e}), 0.0))
+    monkeypatch.setattr(jb, "with_effect", with_effect)
+    monkeypatch.setattr(jb, "current_ls", lambda job, cur, max_nfev=None: cur)
+
+    @_dc
+    class Job:
+        max_iter: int = 30
+        interrupt: object = None
+
+    said = []
+    dg._eliminate(Job(), model((A, F), 0.86), [{"effect": A}, {"effect": F}], 0, said.append, [], [], {}, earlier)
+    assert taken == [F], said                     # {forward scatter} replaced; {lamps} (the lamps neutral) not
+    assert any(f"holds {A} at its neutral values" in line for line in said), said
+
+
 def test_the_polish_refits_one_effect_at_a_time_and_never_loses_theta(tmp_path):
     """The selected model is polished effect by effect (:func:`uw_sil.fit.judges.base.polish_blocks`).
     Planted: a lamps + forward-scatter trial, the model at the truth but for forward scatter, moved away (PSF

@@ -349,8 +349,13 @@ def _eliminate(job, current, accepted: list, seed: int, say, candidates: list, s
 
     The model without an effect is the better, on the fit frames, of that refit and an earlier fit of the same
     model in the forward selection (``earlier``: effect set -> (model it was added to, refit); a model
-    containing another is not judged against a worse fit of that one than the selection already had). The
-    refits of one pass run side by side in ``workers``. Appends to ``candidates``, ``steps`` and ``fits``;
+    containing another is not judged against a worse fit of that one than the selection already had), unless
+    that earlier fit holds one of its effects at its neutral values: it is then a fit of a smaller model. (On a
+    physically lit dive the lamps were accepted by the held-out residual, θ being blind to them in the dark
+    frames; their round-1 θ refit had stayed at the base model, lamps neutral, and its θ on the fit frames
+    beat the elimination's refit of the lamps by 0.001. Taken as "the model without forward scatter" it dropped
+    forward scatter and then left the lamps unnamed: verdict none.) The refits of one pass run side by side in
+    ``workers``. Appends to ``candidates``, ``steps`` and ``fits``;
     returns ``(current, dropped)``."""
     from .judges import JUDGES, margin_for
     from .judges.base import current_ls, residual_gain, residual_improvement, with_effect
@@ -376,7 +381,12 @@ def _eliminate(job, current, accepted: list, seed: int, say, candidates: list, s
             if reduced is None:
                 continue
             known = earlier.get(frozenset(reduced.effects))
-            if known is not None and known[1].theta_fit > reduced.theta_fit:
+            idle = held_neutral(known[1].params["effects"]) if known is not None else []
+            if known is not None and known[1].theta_fit > reduced.theta_fit and idle:
+                say(f"elimination: the forward selection's fit of {reduced.name} is better on the fit frames "
+                    f"(θ {known[1].theta_fit:.4f} vs {reduced.theta_fit:.4f}) but holds {', '.join(idle)} at its "
+                    f"neutral values (a fit of the model without it): the refit is compared")
+            elif known is not None and known[1].theta_fit > reduced.theta_fit:
                 say(f"elimination: the forward selection's fit of {reduced.name} is better on the fit frames "
                     f"(θ {known[1].theta_fit:.4f} vs {reduced.theta_fit:.4f}): that one is compared")
                 reduced = current_ls(job, with_effect(*known), max_nfev=LS_BASE_NFEV)
@@ -431,6 +441,14 @@ def _eliminate(job, current, accepted: list, seed: int, say, candidates: list, s
         current, dropped = reduced, True
         fits[current.name] = {"x": current.x, "held_pf": np.asarray(current.sel_pf), "model": current.model,
                               "model_effects": list(current.effects), "held_E": np.asarray(current.ls_sel_E)}
+
+
+def held_neutral(values: dict) -> list:
+    """The effects of ``values`` (``{effect: its parameter values}``) held at their neutral values: a model
+    holding them so is the model without them, whatever its name."""
+    from ..sim.effects import get_effect
+
+    return [e for e, v in values.items() if get_effect(e).is_identity({**get_effect(e).defaults(), **v})]
 
 
 def _as_refit(model, e: str):
@@ -807,8 +825,8 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
     # ---------------------------------------------------------------- the final model and the verdict
     # an effect the final model holds at its neutral values is the model without it: it is not named (backward
     # elimination may have taken over a fit in which the optimizer left it where it started)
-    neutral = [a for a in accepted if a["effect"] in current.values
-               and get_effect(a["effect"]).is_identity(current.values[a["effect"]])]
+    idle = held_neutral(current.values)
+    neutral = [a for a in accepted if a["effect"] in idle]
     for a in neutral:
         accepted.remove(a)
         say(f"{a['effect']} not named: the final model holds it at its neutral values")
