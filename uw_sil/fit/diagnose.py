@@ -381,15 +381,16 @@ def _eliminate(job, current, accepted: list, seed: int, say, candidates: list, s
             if reduced is None:
                 continue
             known = earlier.get(frozenset(reduced.effects))
-            idle = held_neutral(known[1].params["effects"]) if known is not None else []
-            if known is not None and known[1].theta_fit > reduced.theta_fit and idle:
-                say(f"elimination: the forward selection's fit of {reduced.name} is better on the fit frames "
-                    f"(θ {known[1].theta_fit:.4f} vs {reduced.theta_fit:.4f}) but holds {', '.join(idle)} at its "
-                    f"neutral values (a fit of the model without it): the refit is compared")
-            elif known is not None and known[1].theta_fit > reduced.theta_fit:
-                say(f"elimination: the forward selection's fit of {reduced.name} is better on the fit frames "
-                    f"(θ {known[1].theta_fit:.4f} vs {reduced.theta_fit:.4f}): that one is compared")
-                reduced = current_ls(job, with_effect(*known), max_nfev=LS_BASE_NFEV)
+            if known is not None and known[1].theta_fit > reduced.theta_fit:
+                better = (f"elimination: the forward selection's fit of {reduced.name} is better on the fit frames "
+                          f"(θ {known[1].theta_fit:.4f} vs {reduced.theta_fit:.4f})")
+                idle = held_neutral(known[1].params["effects"])
+                if idle:
+                    say(f"{better} but holds {', '.join(idle)} at its neutral values (a fit of the model without "
+                        f"it): the refit is compared")
+                else:
+                    say(f"{better}: that one is compared")
+                    reduced = current_ls(job, with_effect(*known), max_nfev=LS_BASE_NFEV)
             full = _as_refit(current, e)
             margin = margin_for(current.sel_pf - reduced.sel_pf, 2 * len(tested), seed=seed)
             rgain = residual_gain(reduced, full, 2 * len(tested), seed=seed)
@@ -823,8 +824,8 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
     timing["statistics_s"] = time.perf_counter() - t0
 
     # ---------------------------------------------------------------- the final model and the verdict
-    # an effect the final model holds at its neutral values is the model without it: it is not named (backward
-    # elimination may have taken over a fit in which the optimizer left it where it started)
+    # an effect the final model holds at its neutral values is the model without it: it is not named (a refit
+    # can end where it started)
     idle = held_neutral(current.values)
     neutral = [a for a in accepted if a["effect"] in idle]
     for a in neutral:
