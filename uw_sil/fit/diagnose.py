@@ -445,11 +445,12 @@ def _eliminate(job, current, accepted: list, seed: int, say, candidates: list, s
 
 
 def held_neutral(values: dict) -> list:
-    """The effects of ``values`` (``{effect: its parameter values}``) held at their neutral values: a model
-    holding them so is the model without them, whatever its name."""
-    from ..sim.effects import get_effect
+    """The effects of ``values`` (``{effect: its complete parameter values}``) held at their neutral values
+    (:meth:`~uw_sil.fit.judges.base.Judge.neutral`): a model holding them so is the model without them, whatever
+    its name."""
+    from .judges import JUDGES
 
-    return [e for e, v in values.items() if get_effect(e).is_identity({**get_effect(e).defaults(), **v})]
+    return [e for e, v in values.items() if JUDGES[e].neutral(v)]
 
 
 def _as_refit(model, e: str):
