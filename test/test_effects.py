@@ -1,4 +1,5 @@
 """Effects of the extended underwater model: registry, parameters, presets, and each effect's signature."""
+import math
 import os
 
 import numpy as np
@@ -310,7 +311,7 @@ def test_artificial_light_colour_tints_the_lamp_light_and_its_veil(frames, rende
 
 def test_artificial_light_veil_on_lamp_side(frames, renderer):
     cam = renderer.camera
-    spec = {"artificial_light": {"offset_x": 0.6, "balance": 0.0, "fill": 1.0, "veil": 0.05, "toe_in": 0.2}}
+    spec = {"artificial_light": {"offset_x": 0.6, "balance": 0.0, "fill": 0.5, "veil": 0.05, "toe_in": 0.2}}
     T, rr = frames["far"]
     diff = degrade(spec, frames["far"], cam) - degrade({}, frames["far"], cam)
     water = ~np.isfinite(rr.range)
@@ -318,6 +319,31 @@ def test_artificial_light_veil_on_lamp_side(frames, renderer):
     right = diff[:, 100:][water[:, 100:]].mean()
     left = diff[:, :60][water[:, :60]].mean()
     assert right > 1.2 * left                                             # skewed towards the lamp (+x)
+
+
+def test_artificial_light_veil_is_no_stronger_than_the_lamps_light_allows(frames, renderer):
+    """The veil is light of the same lamps: lamps that light no surface (fill 1) cast none, and a veil beyond
+    ``veil_cap`` (pi R0^2 (b p(pi))_max exp(R0 max a) (1 - fill) power) acts as the cap. Below the cap the
+    veil is linear in its parameter."""
+    from uw_sil.sim.effects.artificial_light import B_P_PI_MAX, R0, veil_cap
+
+    cam = renderer.camera
+    lamp = {"offset_x": 0.6, "balance": 0.0, "toe_in": 0.2, "power": 0.5}
+    a = P.a
+    water = ~np.isfinite(frames["far"][1].range)
+    base = degrade({}, frames["far"], cam)
+
+    def veil(fill, v):
+        return (degrade({"artificial_light": {**lamp, "fill": fill, "veil": v}}, frames["far"], cam) - base)[water]
+
+    assert get_effect("artificial_light").is_identity({**lamp, "fill": 1.0, "veil": 0.3})
+    np.testing.assert_array_equal(veil(1.0, 0.3), 0.0)
+    cap = veil_cap({**lamp, "fill": 0.9}, a)
+    assert cap == pytest.approx(math.pi * R0 ** 2 * B_P_PI_MAX * math.exp(R0 * max(a)) * 0.1 * 0.5)
+    np.testing.assert_allclose(veil(0.9, 0.5), veil(0.9, cap), rtol=1e-6)          # 0.5 acts as the cap
+    small = veil(0.9, cap / 4)
+    assert small.max() > 0
+    np.testing.assert_allclose(veil(0.9, cap / 2), 2 * small, rtol=1e-4, atol=1e-7)   # linear below it
 
 
 def test_artificial_light_cache_returns_what_it_computes(frames, renderer):

@@ -45,7 +45,23 @@ Lamp-lit backscatter (single scattering, the veil in the water, brightest where 
     V_c(p) = veil * t_c * int_0^{R_c} sum_l w_l P(theta_l) HG(psi) / HG(pi) / R_l(s)^2 exp(-a_c (R_l(s) + s)) ds
 
 along the viewing ray ``s d`` of pixel ``p`` up to the surface (or 12 m in open water), with
-Henyey-Greenstein phase ``g = 0.9`` normalized to its backscatter value. The integral is evaluated on a
+Henyey-Greenstein phase ``g = 0.9`` normalized to its backscatter value.
+
+The veil is light of the same lamps, so it cannot be stronger than their light on surfaces allows. Written
+in camera units with the lamps' intensity ``I`` on their axis, a Lambertian surface of albedo 1 facing a lamp
+at ``R0`` gets ``C I exp(-a R0) / (pi R0^2)`` from it, where the renders give such a surface the value
+``i_white = 1`` (:mod:`uw_sil.sim.render`), so ``(1 - fill) power = C I exp(-a R0) / (pi R0^2)``; the
+single-scatter veil is ``C b p(pi) I`` times the integral above, so ``veil = C b p(pi) I``. Hence::
+
+    veil <= pi R0^2 (b p(pi))_max exp(a R0) (1 - fill) power
+
+with ``(b p(pi))_max = 0.03 /(m sr)``: particle scattering ``b`` up to 3 /m (a sediment plume; deep water
+0.02-0.3) times a backscatter phase value ``p(pi)`` up to 0.01 /sr (Henyey-Greenstein ``g`` 0.85-0.95 gives
+0.001-0.0035; ``b_b / b`` 0.01-0.02), and the largest channel's ``a`` (the loosest bound). The model applies
+``min(veil, cap)`` (:func:`veil_cap`): lamps that light no surface (``fill`` 1) cast no veil either, and a
+glow in the water that their light on the scene cannot explain is not theirs to take (a lit seafloor below
+the panel is a surface). Fits of lamp-lit dives from three generators put the ratio at 0-0.05, the bound at
+``0.38 exp(a R0)``. The integral is evaluated on a
 coarse grid of viewing directions (a quarter of the image's columns, 12-48) and 32 log-spaced distances (cumulative
 trapezoid), then interpolated per pixel at its own range (trilinear), so silhouettes stay sharp.
 
@@ -74,6 +90,16 @@ S_MIN, S_MAX, N_S = 0.02, 12.0, 32
 GRID_W = 48
 GRID_MIN = 12
 LN2 = math.log(2.0)
+#: Largest particle scattering coefficient (1/m) times backscatter phase value (1/sr) of the veil's bound
+#: (module docstring): b up to 3 /m (a sediment plume), p(pi) up to 0.01 /sr.
+B_P_PI_MAX = 0.03
+
+
+def veil_cap(values: dict, a) -> float:
+    """The strongest veil (1/m) the lamps' light on surfaces allows, ``pi R0^2 (b p(pi))_max exp(R0 max(a))
+    (1 - fill) power`` (module docstring): 0 when the lamps light no surface."""
+    light = (1.0 - float(values["fill"])) * float(values["power"])
+    return math.pi * R0 * R0 * B_P_PI_MAX * math.exp(R0 * float(np.max(a))) * max(light, 0.0)
 
 
 def _shadow_grid(geom, planes=None) -> dict:
@@ -220,7 +246,9 @@ class ArtificialLight(Effect):
         EffectParam("balance", 0.5, 0.0, 0.5, "", "share of lamp 2 (0: one lamp, 0.5: a symmetric pair)"),
         EffectParam("power", 1.0, 0.1, 5.0, "", "lamp irradiance relative to the base model's light at 2 m"),
         EffectParam("fill", 1.0, 0.0, 1.0, "", "share of uniform light (1: no lamp effect)"),
-        EffectParam("veil", 0.0, 0.0, 0.5, "1/m", "lamp-lit backscatter strength (scattering x lamp radiance)"),
+        EffectParam("veil", 0.0, 0.0, 0.5, "1/m",
+                    "lamp-lit backscatter strength (scattering x lamp radiance); at most veil_cap, what the lamps' "
+                    "light on surfaces allows"),
         EffectParam("tint_r", 1.0, 0.5, 2.0, "", "lamp light's red against its green (LED colour; 1: white)"),
         EffectParam("tint_b", 1.0, 0.5, 2.0, "", "lamp light's blue against its green (LED colour; 1: white)"),
     )
@@ -232,7 +260,7 @@ class ArtificialLight(Effect):
     }
 
     def is_identity(self, values):
-        return values["fill"] == 1 and values["veil"] == 0
+        return values["fill"] == 1          # no lamp light on surfaces: no veil either (veil_cap)
 
     # ------------------------------------------------------------------ per render
 
@@ -395,5 +423,6 @@ class ArtificialLight(Effect):
         st = terms.state[self.name]
         if values["fill"] != 1:
             terms.multiply_illum(self.illumination(st, rig, a))
-        if values["veil"] > 0:
-            terms.add_veil(self.veil_field(st, rig, a, values["veil"]))
+        veil = min(float(values["veil"]), veil_cap(values, a))
+        if veil > 0:
+            terms.add_veil(self.veil_field(st, rig, a, veil))
