@@ -485,6 +485,24 @@ def test_backward_elimination_takes_no_earlier_fit_that_holds_an_effect_neutral(
     assert any(f"holds {A} at its neutral values" in line for line in said), said
 
 
+def _lamps_fs_trial(tmp_path):
+    """A small own lamps + forward-scatter trial (6 frames at 160x120) and a refit job on it at full
+    resolution: ``(truth, fit frames, held-out frames, job)``."""
+    from uw_sil.bags.synth import synthesize_trial, truth_path
+    from uw_sil.fit.judges import JUDGES, Job
+    from uw_sil.fit.residuals import load_frames, reduce_frame, split_frames
+    from uw_sil.sim.camera import CameraModel
+
+    bag = tmp_path / "t.mcap"
+    synthesize_trial(bag, n_frames=6, seed=3, camera=CameraModel.from_fov(160, 120),
+                     effects={"artificial_light": "strong", "forward_scatter": "strong"})
+    fit_f, sel_f = split_frames(load_frames(bag, k=6))
+    R = {id(f): reduce_frame(f, 1) for f in fit_f + sel_f}
+    job = Job(fit_f=fit_f, sel_f=sel_f, R_hi=R, R_lo=R, R_ls=R, fog="exp2", seed=0, max_iter=6, popsize=12,
+              patience=6, sigs={}, prox={}, judges=JUDGES)
+    return json.loads(truth_path(bag).read_text()), fit_f, sel_f, job
+
+
 def test_the_polish_refits_one_effect_at_a_time_and_never_loses_theta(tmp_path):
     """The selected model is polished effect by effect (:func:`uw_sil.fit.judges.base.polish_blocks`).
     Planted: a lamps + forward-scatter trial, the model at the truth but for forward scatter, moved away (PSF
@@ -492,21 +510,11 @@ def test_the_polish_refits_one_effect_at_a_time_and_never_loses_theta(tmp_path):
     The polish must win back at least half of the θ that costs on the fit frames (6 CMA-ES iterations on
     forward scatter's three parameters: 66 % measured); no step may lower θ; the lamps, at their truth, stay
     where they are unless a step raised θ; and the held-out θ it reports is that of the polished vector."""
-    from uw_sil.bags.synth import synthesize_trial, truth_path
     from uw_sil.fit.diagfit import EffectModel
-    from uw_sil.fit.judges import JUDGES, Current, Job
+    from uw_sil.fit.judges import JUDGES, Current
     from uw_sil.fit.judges.base import polish_blocks
-    from uw_sil.fit.residuals import load_frames, reduce_frame, split_frames
-    from uw_sil.sim.camera import CameraModel
 
-    bag = tmp_path / "t.mcap"
-    synthesize_trial(bag, n_frames=6, seed=3, camera=CameraModel.from_fov(160, 120),
-                     effects={"artificial_light": "strong", "forward_scatter": "strong"})
-    truth = json.loads(truth_path(bag).read_text())
-    fit_f, sel_f = split_frames(load_frames(bag, k=6))
-    R = {id(f): reduce_frame(f, 1) for f in fit_f + sel_f}
-    job = Job(fit_f=fit_f, sel_f=sel_f, R_hi=R, R_lo=R, R_ls=R, fog="exp2", seed=0, max_iter=6, popsize=12,
-              patience=6, sigs={}, prox={}, judges=JUDGES)
+    truth, fit_f, sel_f, job = _lamps_fs_trial(tmp_path)
     names = ("artificial_light", "forward_scatter")
     model = EffectModel(job.reduced(fit_f), names, fog="exp2", seed=0,
                         free={e: JUDGES[e].free_params() for e in names})
@@ -532,6 +540,54 @@ def test_the_polish_refits_one_effect_at_a_time_and_never_loses_theta(tmp_path):
         lamp = model.free_index("artificial_light")
         assert np.array_equal(out.x[lamp], x_bad[lamp])
     assert np.allclose(out.sel_pf, job.frame_theta(model, sel_f, out.x, seed_offset=50)[0])
+
+
+def test_a_refit_starts_from_its_effects_refit_of_the_smaller_model(tmp_path, monkeypatch):
+    """Two effects that each explain much of the same residual hide each other in a greedy selection: the one
+    accepted first stretches the model, and the other's refit from that optimum stays near it. So a refit also
+    starts from the candidate's own refit of the previous round's model (``parent``) with the newly accepted
+    effect at its current values. Planted on a lamps + forward-scatter trial: the current model is base +
+    forward scatter with its base parameters moved away from the truth, the parent is the lamps' refit of the
+    base model at the truth, and the optimizer stays at its start: the refit with the parent must start there
+    (its lamps and base are the parent's, θ on the fit frames well above the refit without it)."""
+    import copy
+
+    import uw_sil.fit.judges.base as jb
+    from uw_sil.fit.diagfit import EffectModel, ModelFit
+    from uw_sil.fit.judges import JUDGES, Current
+    from uw_sil.sim.effects import get_effect
+    from uw_sil.sim.params import RGB_NAMES
+
+    truth, fit_f, sel_f, job = _lamps_fs_trial(tmp_path)
+    A, F = "artificial_light", "forward_scatter"
+    base = np.array([truth["params"][k] for k in RGB_NAMES], float)
+    stretched = base.copy()
+    stretched[:3] *= 2.5                                  # attenuation taking the lamps' falloff
+    fs = dict(truth["effect_params"][F])
+    model = EffectModel(job.reduced(fit_f), (F,), fog="exp2", seed=0, free={F: JUDGES[F].free_params()},
+                        values={F: fs})
+    x = model.x0(stretched, {F: fs})
+    cur = Current(effects=(F,), values={F: fs}, base=stretched,
+                  theta_fit=float(job.frame_theta(model, fit_f, x).mean()),
+                  sel_pf=job.frame_theta(model, sel_f, x, seed_offset=50)[0], x=x, model=model)
+    parent = {"base": dict(zip(RGB_NAMES, map(float, base))), "effects": {A: dict(truth["effect_params"][A])}}
+
+    def stays(model, rframes, noise, x0, **kw):           # the optimizer stays at the best start
+        return ModelFit(model, np.asarray(x0, float), 0.0, 0.0, 0, 0, "planted", 0.0, 0)
+
+    monkeypatch.setattr(jb, "fit_model", stays)
+    judge = copy.copy(JUDGES[A])
+    judge.least_squares = False
+    with_parent = jb.theta_refit(job, cur, judge, parent=parent)
+    without = jb.theta_refit(job, cur, judge)
+    p = with_parent.params
+    assert np.allclose([p["base"][k] for k in RGB_NAMES], base, atol=1e-9)
+    box = {q.name: q for q in get_effect(A).params}
+    for name, v in truth["effect_params"][A].items():
+        if name in judge.free_params():
+            assert p["effects"][A][name] == pytest.approx(float(np.clip(v, box[name].lo, box[name].hi)), abs=1e-9)
+    assert p["effects"][F] == pytest.approx(fs)
+    assert with_parent.theta_fit > without.theta_fit + 0.01, (with_parent.theta_fit, without.theta_fit)
 
 
 def test_a_plausible_explanation_is_chosen_before_a_stretched_one(bags, monkeypatch):
@@ -715,8 +771,8 @@ def test_an_effect_the_final_model_holds_neutral_is_not_named(bags, monkeypatch)
     cr = type(jd.JUDGES["camera_response"])
     real = cr.refit
 
-    def neutral(self, job, current, x_starts=None):
-        r = real(self, job, current, x_starts)
+    def neutral(self, job, current, x_starts=None, parent=None):
+        r = real(self, job, current, x_starts, parent)
         r.params["effects"]["camera_response"] = get_effect("camera_response").defaults()
         return r
 

@@ -23,7 +23,10 @@ camera info and panel poses, and the scene model; never a ground-truth sidecar):
    number of candidates of the round, and at least :data:`uw_sil.fit.judges.base.MIN_MARGIN`); the model
    is refitted jointly with it, and the next round tries the :data:`LATER_CANDIDATES` remaining effects with
    the best evidence in their latest refit, until none beats its margin or ``max_effects`` are in. A refit
-   never ends below the model it contains on the fit frames (:func:`uw_sil.fit.judges.base.theta_refit`). A
+   never ends below the model it contains on the fit frames (:func:`uw_sil.fit.judges.base.theta_refit`), and
+   it starts from both models it contains: the current one with the effect neutral, and the effect's own refit
+   of the previous round with the effect accepted since at its current values (two effects that explain much
+   of the same residual, lamps aimed down and a lit seafloor, otherwise hide each other). A
    pose correction, once accepted, is applied to the frames' geometry. A round's refits run side by side in
    worker processes (:mod:`uw_sil._shared.workers`; the GIL kept threads to 1.15x), and so do the base fit's
    θ evaluations. Then **backward elimination**: every
@@ -511,18 +514,20 @@ def _refit_one(shared, effect):
     time in ``extra["refit_s"]``."""
     from .judges import JUDGES
 
-    job, current = shared
+    job, current, parents = shared
     t = time.perf_counter()
-    r = JUDGES[effect].refit(job, current)
+    r = JUDGES[effect].refit(job, current, parent=parents.get(effect))
     r.extra["refit_s"] = time.perf_counter() - t
     return r
 
 
-def _refit_all(workers, cands: list, job, current, say, label: str, took: dict) -> dict:
+def _refit_all(workers, cands: list, job, current, say, label: str, took: dict,
+               parents: Optional[dict] = None) -> dict:
     """Every candidate's refit of a round, side by side in the diagnosis's worker processes (the results of
     one after the other, up to rounding: :func:`diagnose_frames`); ``{effect: Refit}`` in the order of
     ``cands``. The costliest refits first (their time in an earlier round, ``took``, updated here; else the
-    plug-in's :attr:`~uw_sil.fit.judges.base.Judge.cost`)."""
+    plug-in's :attr:`~uw_sil.fit.judges.base.Judge.cost`). ``parents``: each candidate's refit of the previous
+    round's model, a start of its refit here (:func:`~uw_sil.fit.judges.base.theta_refit`)."""
     from .judges import JUDGES
 
     n = min(workers.processes, len(cands))
@@ -533,7 +538,8 @@ def _refit_all(workers, cands: list, job, current, say, label: str, took: dict) 
         took[cands[i]] = r.extra["refit_s"]
         say(f"{label}: {current.name} + {cands[i]} refitted ({r.extra['refit_s']:.1f} s)")
 
-    res = workers.map(_refit_one, cands, shared=(job, current), interrupt=job.interrupt, done=done,
+    parents = {e: p for e, p in (parents or {}).items() if e in cands}
+    res = workers.map(_refit_one, cands, shared=(job, current, parents), interrupt=job.interrupt, done=done,
                       cost=[took.get(e, JUDGES[e].cost) for e in cands])
     return dict(zip(cands, res))
 
@@ -656,7 +662,7 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
     order = {e: JUDGES[e].order(job) for e in allowed}
     pool = sorted((e for e in allowed if JUDGES[e].kind == "theta"), key=lambda e: -order[e])
     stat_effects = [e for e in allowed if JUDGES[e].kind == "statistic"]
-    candidates, steps, accepted, latest, earlier, took = [], [], [], {}, {}, {}
+    candidates, steps, accepted, latest, earlier, took, parents = [], [], [], {}, {}, {}, {}
     fits = {"base": {"x": base_fit.x, "held_pf": base_sel_pf, "model": empty, "model_effects": [],
                      "held_E": base_sel_E}}
     rnd = 0
@@ -671,7 +677,8 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
                 break
             t0 = time.perf_counter()
             cheap = replace(job, max_iter=min(job.max_iter, CHEAP_ITER))
-            results = _refit_all(workers, cands, cheap, current, say, f"round {rnd}", took)
+            results = _refit_all(workers, cands, cheap, current, say, f"round {rnd}", took, parents)
+            parents = {e: r.params for e, r in results.items() if r.params}
             for e in cands:
                 if not JUDGES[e].absorb:
                     _keep_better(earlier, current, results[e])
@@ -757,6 +764,7 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
                 # the fits so far saw the frames before the correction: not comparable with the ones after
                 # (backward elimination took a fit of the uncorrected frames, and with it lost the correction)
                 earlier.clear()
+                parents = {}
             else:
                 # the reference of the next round's residual evidence: the new model's least-squares fit polished
                 # with the base fit's least-squares budget (a candidate's fit must not win by a longer polish alone)

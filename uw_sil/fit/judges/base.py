@@ -37,6 +37,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
+from ...sim.params import RGB_NAMES
 from ..diagfit import BASE_SIGMA0, EffectModel, FrameObjective, fit_model, ls_fit, noise_sigmas, residual_energy
 
 __all__ = ["Job", "Current", "Refit", "Judge", "theta_refit", "margin_for", "bootstrap_se", "z_multiple",
@@ -311,10 +312,12 @@ class Judge:
 
     # ------------------------------------------------------------------ refit and criterion
 
-    def refit(self, job: Job, current: Current, x_starts: Optional[list] = None) -> Refit:
+    def refit(self, job: Job, current: Current, x_starts: Optional[list] = None,
+              parent: Optional[dict] = None) -> Refit:
         """Refit the current model plus this effect; ``x_starts``: whole parameter vectors of the same model
-        to start from too (an earlier, cheaper refit)."""
-        return theta_refit(job, current, self, x_starts=x_starts)
+        to start from too (an earlier, cheaper refit); ``parent``: the ``params`` of this effect's refit of an
+        earlier, smaller model (a start too, :func:`theta_refit`)."""
+        return theta_refit(job, current, self, x_starts=x_starts, parent=parent)
 
     def accept(self, r: Refit, current: Current, margin: float, residual: Optional[tuple] = None) -> tuple:
         """``(accepted, strength, criterion)``: held-out θ gain over the current model beyond ``margin``, or
@@ -430,14 +433,22 @@ def _sigma0(judges) -> np.ndarray:
 
 
 def theta_refit(job: Job, current: Current, judge: Judge, starts: Optional[list] = None,
-                x_starts: Optional[list] = None, least_squares: bool = True) -> Refit:
+                x_starts: Optional[list] = None, least_squares: bool = True, parent: Optional[dict] = None) -> Refit:
     """Refit the current model plus ``judge.effect`` jointly on the fit frames (θ, CMA-ES with the common
     budget, started from the best of: the current optimum with the effect neutral, the plug-in's start, least
     squares from those and from the plug-in's alternative starts) and score it per held-out frame.
 
     Never ends below the current model on the fit frames at high resolution: if the fitted vector scores
     lower there than the current optimum with the effect neutral, the latter is kept. ``least_squares=False``:
-    no least-squares starts (nor fit) of the plug-in's own."""
+    no least-squares starts (nor fit) of the plug-in's own.
+
+    ``parent``: the ``params`` of this effect's refit of a smaller model (the previous round's, before the
+    effect accepted there): the model is nested in two ways, the current model with this effect neutral and that
+    refit with the newly accepted effects at their current values, and starts from both (as a θ start and a
+    least-squares start). Two effects that each explain much of the same residual alone (lamps aimed down and a
+    lit seafloor below the panel) otherwise hide each other: whichever is accepted first stretches the base
+    model (attenuation taking the lamps' falloff, a veil taking the floor), and the other's refit from that
+    stretched optimum stays near it."""
     from ...sim.effects import EFFECT_ORDER
 
     names = tuple(e for e in EFFECT_ORDER if e in current.effects or e == judge.effect)
@@ -453,12 +464,18 @@ def theta_refit(job: Job, current: Current, judge: Judge, starts: Optional[list]
     x_hint = model.x0(current.base, {**cur, judge.effect: s0})
     cand = [x_id, x_hint] + [model.x0(current.base, {**cur, judge.effect: s}) for s in (starts or [])]
     cand += [np.clip(np.asarray(x, float), *model.bounds()) for x in (x_starts or [])]
+    par = []
+    if parent is not None and judge.effect in parent.get("effects", {}):
+        par_base = np.array([parent["base"][k] for k in RGB_NAMES], float)
+        par_values = {**cur, **{e: v for e, v in parent["effects"].items() if e in names}}
+        par = [model.x0(par_base, par_values)]
+        cand += par
     ls_extra = {}
     if judge.least_squares and least_squares and not x_starts:
         lmodel = model.like(job.reduced(job.fit_f, "ls"))
         ls_x = [ls_fit(lmodel, xs, stride=1, max_nfev=job.ls_nfev, interrupt=job.interrupt)
                 for xs in [x_hint] + [lmodel.x0(current.base, {**cur, judge.effect: {**s0, **a}})
-                                      for a in judge.alt_starts]]
+                                      for a in judge.alt_starts] + par]
         cand += ls_x
         if current.ls_params is not None:
             # nested: the current model's least-squares optimum with the effect neutral is a candidate too;

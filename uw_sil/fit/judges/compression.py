@@ -42,7 +42,7 @@ class CompressionJudge(Judge):
     kind = "statistic"
     least_squares = False
 
-    def refit(self, job, current, x_starts=None):
+    def refit(self, job, current, x_starts=None, parent=None):
         from ...sim.effects.compression import jpeg_roundtrip
         from ...sim.noise import NoiseField, water_noise_sigma
         from ...sim.optics import degrade

@@ -131,7 +131,7 @@ class MarineSnowJudge(Judge):
     kind = "statistic"
     least_squares = False
 
-    def refit(self, job, current, x_starts=None):
+    def refit(self, job, current, x_starts=None, parent=None):
         r = snow_refit(job.R_hi, job.fit_f, job.sel_f, current.base, job.fog, job.seed)
         return Refit(effect=self.effect, effects=(self.effect,), x=r["x"], params=r["params"],
                      theta_fit=r["theta_train"], sel_pf=r["held_pf"], statistic=r["statistic"])

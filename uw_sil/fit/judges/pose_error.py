@@ -85,7 +85,7 @@ class PoseErrorJudge(Judge):
         s = self.signature(job)
         return pose_hint((s.hint.get("motion") if s is not None else None) or [])
 
-    def refit(self, job, current, x_starts=None):
+    def refit(self, job, current, x_starts=None, parent=None):
         from ...sim.effects import EFFECT_ORDER
 
         names = tuple(e for e in EFFECT_ORDER if e in current.effects or e == self.effect)

@@ -167,7 +167,7 @@ class SensorNoiseJudge(Judge):
     kind = "statistic"
     least_squares = False
 
-    def refit(self, job, current, x_starts=None):
+    def refit(self, job, current, x_starts=None, parent=None):
         r = noise_refit(job.fit_f, job.sel_f, current.base, self.signature(job), job.fog, job.seed, current.sel_pf,
                         current.theta_fit, exclude=job.exclude or None, effects=current.effects,
                         values=current.values)
