@@ -45,7 +45,9 @@ Lamp-lit backscatter (single scattering, the veil in the water, brightest where 
     V_c(p) = veil * t_c * int_0^{R_c} sum_l w_l P(theta_l) HG(psi) / HG(pi) / R_l(s)^2 exp(-a_c (R_l(s) + s)) ds
 
 along the viewing ray ``s d`` of pixel ``p`` up to the surface (or 12 m in open water), with
-Henyey-Greenstein phase ``g = 0.9`` normalized to its backscatter value.
+Henyey-Greenstein phase ``g = 0.9`` normalized to its backscatter value. The integral is evaluated on a
+coarse grid of viewing directions (a quarter of the image's columns, 12-48) and 32 log-spaced distances (cumulative
+trapezoid), then interpolated per pixel at its own range (trilinear), so silhouettes stay sharp.
 
 The veil is light of the same lamps, so it cannot be stronger than their light on surfaces allows. Written
 in camera units with the lamps' intensity ``I`` on their axis, a Lambertian surface of albedo 1 facing a lamp
@@ -61,9 +63,7 @@ with ``(b p(pi))_max = 0.03 /(m sr)``: particle scattering ``b`` up to 3 /m (a s
 ``min(veil, cap)`` (:func:`veil_cap`): lamps that light no surface (``fill`` 1) cast no veil either, and a
 glow in the water that their light on the scene cannot explain is not theirs to take (a lit seafloor below
 the panel is a surface). Fits of lamp-lit dives from three generators put the ratio at 0-0.05, the bound at
-``0.38 exp(a R0)``. The integral is evaluated on a
-coarse grid of viewing directions (a quarter of the image's columns, 12-48) and 32 log-spaced distances (cumulative
-trapezoid), then interpolated per pixel at its own range (trilinear), so silhouettes stay sharp.
+``0.38 exp(a R0)``.
 
 Signature: a smooth multiplicative log-residual on objects, slope about -2 against ln R plus a term in
 -a, a hotspot that moves with range (parallax of the offset lamps); additive, lamp-side-skewed light in
