@@ -63,6 +63,8 @@ def test_control_gives_no_verdict(diagnoses):
     doc = diagnoses["control"]
     assert doc["verdict"] == [], doc["verdict"]
     assert doc["final"]["theta_heldout"] == doc["base"]["theta_heldout"]
+    # nothing accepted: the final model is the base model, rendered the same way with the same draws
+    assert doc["final"]["theta_heldout_simulated"] == doc["base"]["theta_heldout_simulated"]
 
 
 def test_json_follows_the_schema(diagnoses):
@@ -160,6 +162,34 @@ def test_images_mode_noise_needs_visible_noise(tmp_path):
     named = {k: [v["effect"] for v in diagnose_images(str(tmp_path / k))["verdict"]]
              for k in ("noisy", "clean")}
     assert "sensor_noise" in named["noisy"] and "sensor_noise" not in named["clean"], named
+
+
+def test_a_model_is_scored_as_sim_camera_renders_it(bags):
+    """θ "as simulated" renders a model at the recording's resolution with its noise drawn, rounds to grey
+    levels and reduces it as the recording is reduced: a recording made that way from the same model and
+    draws scores 1 (to rounding); other draws of the same noise score less, and so does the model without its
+    noise model (the camera's constant noise in its place)."""
+    import dataclasses
+
+    from uw_sil.fit.diagfit import EffectModel
+    from uw_sil.fit.diagnose import theta_as_simulated
+    from uw_sil.fit.residuals import load_frames, reduce_frame
+    from uw_sil.sim.params import RGB_NAMES
+
+    frames = load_frames(bags["control"], k=2)
+    base = dict(zip(RGB_NAMES, (0.4, 0.12, 0.08, 0.1, 0.3, 0.35, 0.05)))
+    noise = {"sensor_noise": {"shot": 0.3, "read": 2.0, "corr": 1.0, "fpn": 0.0, "col": 0.0, "row": 0.0}}
+    model = EffectModel([reduce_frame(f, 1) for f in frames], ("sensor_noise",), values=noise,
+                        free={"sensor_noise": ()}, seed=7)
+    x = model.x0([base[k] for k in RGB_NAMES])[None]
+    rec = [dataclasses.replace(f, image=np.rint(np.clip(model.simulate(k, x)[0] * 255.0, 0, 255)).astype(np.uint8))
+           for k, f in enumerate(frames)]
+    R = {id(f): reduce_frame(f, 2) for f in rec}
+    same = theta_as_simulated(rec, R, base, noise, "exp2", seed=7)
+    other = theta_as_simulated(rec, R, base, noise, "exp2", seed=8)
+    constant = theta_as_simulated(rec, R, base, {}, "exp2", seed=7)
+    np.testing.assert_allclose(same, 1.0, atol=1e-6)
+    assert np.all(other < 0.999) and np.all(constant < 0.999), (other, constant)
 
 
 def test_noise_statistics_leave_particles_out():

@@ -536,7 +536,9 @@ def cmd_diagnose(args) -> int:
     _raise_if_interrupted()
     for line in diag.summary_lines():
         print(line)
-    print(f"held-out θ {diag.base['theta_heldout']:.4f} -> {diag.final['theta_heldout']:.4f}; "
+    print(f"held-out θ {diag.base['theta_heldout']:.4f} -> {diag.final['theta_heldout']:.4f} "
+          f"(as sim_camera renders the models, noise and particles drawn: "
+          f"{diag.base['theta_heldout_simulated']:.4f} -> {diag.final['theta_heldout_simulated']:.4f}); "
           f"{diag.timing['total_s']:.0f} s")
     if args.json:
         write_json_atomic(args.json, diag.to_json())

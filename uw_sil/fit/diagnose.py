@@ -50,9 +50,10 @@ JSON schema (``schema_version`` 1)::
                      "round", "model", "margin", "accepted", "doubts", ...}, ...],        # every refit
                                                     # ("flat_bounds": parameters saturated on their bound)
      "selection":  [{"round", "model", "theta_heldout", "tried", "chosen", "time_s"}, ...],
-     "base":       {"theta_train", "theta_heldout", "theta_report", "params", "doubts"},
-     "final":      {"theta_heldout", "theta_report", "effects", "params", "statistics"},
+     "base":       {"theta_train", "theta_heldout", "theta_heldout_simulated", "theta_report", "params", "doubts"},
+     "final":      {"theta_heldout", "theta_heldout_simulated", "theta_report", "effects", "params", "statistics"},
                                                     # theta_report: θ on the report frames (null: none)
+                                                    # theta_heldout_simulated: theta_as_simulated()
      "mismatch":   {"regions": [{"kind", "name", "pixels", "rms", "mean", "rms_rgb", "share"}, ...]},
      ... extra keys: "noise", "signatures", "frames", "timing", "not_judged", "source"}
 
@@ -242,6 +243,38 @@ def _full_res_noise(frames) -> list:
     from ..sim.noise import water_noise_sigma
 
     return [[float(v) for v in water_noise_sigma(f.image, ~np.isfinite(f.render.range))] for f in frames]
+
+
+def theta_as_simulated(frames, R_hi: dict, base: dict, effects: dict, fog: str, seed: int) -> np.ndarray:
+    """θ per frame of a model (``base``: the 7 parameters by name; ``effects``: ``{effect: values}`` applied to
+    the frames' geometry) as ``sim_camera`` renders it
+    with the diagnosis' params file: at the recording's resolution, every effect applied and those new in every
+    frame (sensor noise, particles) drawn; without a sensor-noise effect, the camera's constant noise estimated
+    on the frame's water (as the params file sets it); rounded to grey levels and reduced as the recording is,
+    then scored against the reduced recording (``R_hi[id(frame)]``, the reference every model is scored with).
+
+    Held-out θ of a fit leaves the per-frame effects out (they cannot be compared pixel by pixel) and adds the
+    constant noise at the reduced resolution; this is the number to hold against a recording of the same dive
+    with other draws of its noise and particles (``bench/bench_concealed.py``'s ceiling), which is made the
+    same way. A correction of the frames' geometry the model holds (a pose correction) is already in ``frames``,
+    not in ``effects``."""
+    from ..sim.noise import NoiseField, water_noise_sigma
+    from .diagfit import theta_reference
+    from .residuals import box_down
+
+    full = [reduce_frame(f, 1) for f in frames]
+    model = EffectModel(full, tuple(effects), values=effects, free={e: () for e in effects}, fog=fog, seed=seed)
+    base = np.array([base[k] for k in RGB_NAMES], float)
+    out = np.empty(len(frames))
+    for k, f in enumerate(frames):
+        img = model.simulate(k, model.x0(base)[None])[0] * np.float32(255.0)
+        if not model.owns_noise:
+            NoiseField(img.shape, water_noise_sigma(f.image, ~np.isfinite(f.render.range)),
+                       seed=seed + 7919 * k).apply(img)
+        np.rint(np.clip(img, 0.0, 255.0, out=img), out=img)
+        R = R_hi[id(f)]
+        out[k] = float(theta_reference(R).fork().score(box_down(img, R.factor)[None])[0])
+    return out
 
 
 def _particle_blocks(ctx, sigs: dict, factor: int):
@@ -871,6 +904,13 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
                         "params": _effect_flat(final_params, [e]), "doubts": doubts})
     verdict.sort(key=lambda v: -v["confidence"])
     final_theta = float(current.sel_pf.mean())
+    # the held-out frames as sim_camera renders the base and the final model (noise and particles drawn)
+    t0 = time.perf_counter()
+    drawn = {e: current.values[e] for e in current.effects}
+    drawn.update({a["effect"]: eff_values[a["effect"]] for a in accepted if JUDGES[a["effect"]].kind == "statistic"})
+    as_sim = {"base": theta_as_simulated(held_f, R_hi, base_params["base"], {}, fog, seed + 50),
+              "final": theta_as_simulated(job.sel_f, job.R_hi, final_params["base"], drawn, fog, seed + 50)}
+    timing["as_simulated_s"] = time.perf_counter() - t0
     report = {"base": None, "final": None}
     if report_f:
         # frames no fit and no choice saw: the base and the final model scored on them (a pose correction the
@@ -890,10 +930,12 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
     diag = Diagnosis(
         verdict=verdict, candidates=candidates,
         base={"theta_train": float(base_fit.theta_train), "theta_heldout": float(base_sel_pf.mean()),
+              "theta_heldout_simulated": float(as_sim["base"].mean()),
               "theta_report": _mean_or_none(report["base"]),
               "residual_heldout": float(np.mean(base_sel_E)),
               "params": dict(base_params["base"]), "doubts": base_doubts(base_params["base"])},
-        final={"theta_heldout": final_theta, "residual_heldout": float(np.mean(current.ls_sel_E)),
+        final={"theta_heldout": final_theta, "theta_heldout_simulated": float(as_sim["final"].mean()),
+               "residual_heldout": float(np.mean(current.ls_sel_E)),
                "theta_report": _mean_or_none(report["final"]),
                "effects": final_effects, "params": _flat(final_params),
                "statistics": {a["effect"]: a["refit"].statistic for a in accepted
