@@ -100,6 +100,9 @@ def test_params_yaml_and_report(diagnoses):
     assert set(flat_to_effect_params(p)) == {"vignetting"}      # what sim_camera reads back
     for name in ("index.html", "residuals.png", "signatures.png", "models.png", "heldout.png"):
         assert (d / "report" / name).stat().st_size > 1000
+    doc = diagnoses["vignetting"]
+    assert (f"base {doc['base']['theta_heldout_simulated']:.4f} → final {doc['final']['theta_heldout_simulated']:.4f}"
+            in (d / "report" / "index.html").read_text())
 
 
 def test_exit_codes(bags, tmp_path, capsys):

@@ -97,6 +97,11 @@ def test_statuses_say_what_the_diagnosis_found():
     assert "below its margin" in st[2]["message"] and st[2]["values"]["margin"] == "0.03"
     assert all(s["hardware_id"] == "backward_fit" and all(isinstance(v, str) for v in s["values"].values())
                for s in st)
+    assert "theta_heldout_simulated_final" not in st[0]["values"]      # a document from before that number
+    doc = _doc()
+    doc["base"]["theta_heldout_simulated"], doc["final"]["theta_heldout_simulated"] = 0.61, 0.83
+    values = diagnostic_statuses(doc)[0]["values"]
+    assert values["theta_heldout_simulated_base"] == "0.61" and values["theta_heldout_simulated_final"] == "0.83"
     none = diagnostic_statuses(_doc(verdict=False))
     assert [s["level"] for s in none] == [OK, OK, OK] and none[0]["message"].startswith("none")
     (err,) = failure_statuses("only 1 usable frame(s)")

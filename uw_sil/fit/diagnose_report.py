@@ -232,6 +232,10 @@ def write_diagnosis_report(diag, out_dir, title: str = "uw_sil mismatch diagnosi
                      f"{d['noise']['margin']:.4f}).</p>")
     parts.append(f"<p>held-out θ: base {d['base']['theta_heldout']:.4f} → final {d['final']['theta_heldout']:.4f} "
                  f"(train θ of the base fit {d['base']['theta_train']:.4f})</p>")
+    if d["final"].get("theta_heldout_simulated") is not None:
+        parts.append(f"<p>held-out θ as <code>sim_camera</code> renders the models (at the recording's resolution, "
+                     f"their noise and particles drawn): base {d['base']['theta_heldout_simulated']:.4f} → final "
+                     f"{d['final']['theta_heldout_simulated']:.4f}</p>")
     if d["final"].get("theta_report") is not None:
         rep = [f["index"] for f in d["frames"] if f["role"] == "report"]
         parts.append(f"<p>on the report frames {rep}, which no fit and no choice saw: θ base "

@@ -115,6 +115,9 @@ def diagnostic_statuses(doc: dict, node: str = "backward_fit") -> list:
     summary_values = {"theta_heldout_base": base["theta_heldout"], "theta_heldout_final": final["theta_heldout"],
                       "effects": ",".join(final.get("effects", [])) or "none",
                       "time_s": doc.get("timing", {}).get("total_s", float("nan"))}
+    if final.get("theta_heldout_simulated") is not None:       # as sim_camera renders the models
+        summary_values.update(theta_heldout_simulated_base=base["theta_heldout_simulated"],
+                              theta_heldout_simulated_final=final["theta_heldout_simulated"])
     if verdict:
         summary = (WARN, f"the simulation lacks {', '.join(verdict)}: extended model sent ({theta})")
     else:
