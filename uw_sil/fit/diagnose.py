@@ -247,11 +247,11 @@ def _full_res_noise(frames) -> list:
 
 def theta_as_simulated(frames, R_hi: dict, base: dict, effects: dict, fog: str, seed: int) -> np.ndarray:
     """θ per frame of a model (``base``: the 7 parameters by name; ``effects``: ``{effect: values}`` applied to
-    the frames' geometry) as ``sim_camera`` renders it
-    with the diagnosis' params file: at the recording's resolution, every effect applied and those new in every
-    frame (sensor noise, particles) drawn; without a sensor-noise effect, the camera's constant noise estimated
-    on the frame's water (as the params file sets it); rounded to grey levels and reduced as the recording is,
-    then scored against the reduced recording (``R_hi[id(frame)]``, the reference every model is scored with).
+    the frames' geometry) as ``sim_camera`` renders it with the diagnosis' params file: at the recording's
+    resolution, every effect applied and those new in every frame (sensor noise, particles) drawn; without a
+    sensor-noise effect, the camera's constant noise estimated on the frame's water (the params file sets its
+    mean over the frames); rounded to grey levels and reduced as the recording is, then scored against the
+    reduced recording (``R_hi[id(frame)]``, the reference every model is scored with).
 
     Held-out θ of a fit leaves the per-frame effects out (they cannot be compared pixel by pixel) and adds the
     constant noise at the reduced resolution; this is the number to hold against a recording of the same dive
