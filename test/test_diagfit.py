@@ -87,3 +87,28 @@ def test_a_pose_correction_below_a_quarter_pixel_is_not_named():
 
     assert judge.accept(refit(0.4 * MIN_SHIFT_PX), current, 0.003)[0] is False
     assert judge.accept(refit(4 * MIN_SHIFT_PX), current, 0.003)[0] is True
+
+
+@pytest.mark.parametrize("factor", [2, 3, 6])
+def test_a_frame_of_any_size_reduces_to_a_camera_of_its_blocks(factor):
+    """Recordings come in any size: a 161x121 frame reduced by 2, 3 or 6 drops its incomplete last blocks, and
+    the reduced camera is the camera of the blocks (its size the image's; a point projects to the block that
+    holds its full-resolution pixel), so that every model can be built on it (a size the factor did not divide
+    stopped the diagnosis: 'clean image must be (62, 84, 3) for this camera, got (62, 83, 3)')."""
+    from uw_sil.sim.camera import CameraModel
+    from uw_sil.sim.render import Renderer
+    from uw_sil.sim.scene import facing_pose
+
+    cam = CameraModel.from_fov(161, 121)
+    T = facing_pose(1.5, yaw=0.1)
+    with Renderer(camera=cam) as r:
+        rr = r.render(T)
+    frame = DiagFrame(0, 0, np.full((121, 161, 3), 40, np.uint8), rr, cam, T, float(np.isfinite(rr.range).mean()))
+    rf = reduce_frame(frame, factor)
+    assert rf.image.shape[:2] == rf.cover.shape == (121 // factor, 161 // factor)
+    assert (rf.camera.width, rf.camera.height) == (161 // factor, 121 // factor)
+    p = np.array([[0.3, -0.2, 1.7], [-0.5, 0.4, 2.5]])
+    np.testing.assert_allclose(rf.camera.project(p), (cam.project(p) + 0.5) / factor - 0.5, atol=1e-9)
+    model = EffectModel([rf], ("artificial_light", "vignetting"), values={"artificial_light": {"power": 1.0}})
+    img = model.simulate(0, model.x0([0.4, 0.12, 0.08, 0.1, 0.3, 0.35, 0.05])[None])[0]
+    assert img.shape == rf.image.shape and np.isfinite(img).all()

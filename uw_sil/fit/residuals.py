@@ -128,7 +128,7 @@ class ReducedFrame:
             f = self.factor // 2
             hit, cover, dep, rng, parts = _block_geometry(self.frame.render, f)
             h, w = cover.shape
-            cam = self.frame.camera.scaled(1.0 / f) if f > 1 else self.frame.camera
+            cam = self.frame.camera.binned(f)
             g = Geometry(cam, np.zeros((h, w, 3), np.float32), dep, rng, part_ids=parts, pose=self.frame.pose)
             if g.shape != (2 * self.shape[0], 2 * self.shape[1]):
                 self.extra["fine_geometry"] = False  # an odd factor, or a size not a multiple of it
@@ -196,7 +196,7 @@ def reduce_frame(frame: DiagFrame, factor: int, water_margin: int = 2) -> Reduce
     normals[none] = 0.0
     return ReducedFrame(frame, f, box_down(frame.image, f), rgb.astype(np.float32), cover, rng, dep, labels,
                         parts_c.astype(np.uint16), obj, water,
-                        camera=frame.camera.scaled(1.0 / f) if f > 1 else frame.camera,
+                        camera=frame.camera.binned(f),
                         normals=normals.astype(np.float32))
 
 
