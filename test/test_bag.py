@@ -552,3 +552,43 @@ def test_image_conversion_round_trip_and_padding():
         rgb_to_image_fields(rgb[:, :, 0], "rgb8")
     with pytest.raises(ValueError, match="uint8"):
         rgb_to_image_fields(rgb.astype(np.float32))
+
+
+@pytest.mark.parametrize("pattern", ["rggb", "bggr", "gbrg", "grbg"])
+def test_a_raw_bayer_image_is_demosaiced_with_its_colours_where_they_are(pattern):
+    """A camera driver's image_raw is often the sensor's Bayer mosaic: each pattern's colours must land in
+    their channels (OpenCV names the patterns otherwise: a swap turns red water blue), a smooth image must come
+    back close to itself, and a 16-bit mosaic keeps its high byte."""
+    h, w = 24, 32
+    yy, xx = np.mgrid[0:h, 0:w]
+    rgb = np.stack([60 + 4 * xx, 40 + 3 * yy, 200 - 2 * xx - yy], axis=-1).astype(np.uint8)
+    cell = {"r": 0, "g": 1, "b": 2}
+    which = np.array([[cell[pattern[0]], cell[pattern[1]]], [cell[pattern[2]], cell[pattern[3]]]])
+    chan = which[yy % 2, xx % 2]
+    mosaic = np.take_along_axis(rgb, chan[..., None], axis=2)[..., 0]
+    msg = SimpleNamespace(height=h, width=w, encoding=f"bayer_{pattern}8", step=w, data=mosaic.tobytes())
+    out = image_to_rgb(msg)
+    assert out.shape == (h, w, 3) and out.dtype == np.uint8
+    inner = (slice(2, -2), slice(2, -2))
+    assert np.abs(out[inner].astype(int) - rgb[inner]).max() <= 4
+    wide = (mosaic.astype(np.uint16) << 8) | 0x5A                 # the low byte must not matter
+    for big in (0, 1):
+        data = wide.astype(">u2" if big else "<u2").tobytes()
+        m16 = SimpleNamespace(height=h, width=w, encoding=f"bayer_{pattern}16", step=2 * w, data=data,
+                              is_bigendian=big)
+        np.testing.assert_array_equal(image_to_rgb(m16), out)
+
+
+def test_sixteen_bit_images_keep_their_high_byte_in_either_byte_order():
+    rgb = np.random.default_rng(5).integers(0, 256, (4, 6, 3), dtype=np.uint8)
+    v = (rgb.astype(np.uint16) << 8) | np.uint16(0xA7)
+    for big in (0, 1):
+        dt = ">u2" if big else "<u2"
+        for enc, arr in (("rgb16", v), ("bgr16", v[:, :, ::-1]), ("mono16", v[:, :, 1]), ("16UC1", v[:, :, 1])):
+            a = np.ascontiguousarray(arr).astype(dt)
+            msg = SimpleNamespace(height=4, width=6, encoding=enc, step=a.nbytes // 4, data=a.tobytes(),
+                                  is_bigendian=big)
+            want = rgb if enc in ("rgb16", "bgr16") else np.repeat(rgb[:, :, 1:2], 3, axis=2)
+            np.testing.assert_array_equal(image_to_rgb(msg), want, err_msg=f"{enc} big-endian={big}")
+    with pytest.raises(ValueError, match="unsupported image encoding 'rgb32f'"):
+        image_to_rgb(SimpleNamespace(height=1, width=1, encoding="rgb32f", step=12, data=bytes(12)))

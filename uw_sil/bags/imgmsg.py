@@ -2,8 +2,10 @@
 
 The functions take any object with the message's fields (an rclpy message, a rosbags message, a
 ``SimpleNamespace``), so the bag reader and the ROS nodes share one conversion and no ROS import is
-needed here. Only 8-bit colour and grey encodings are supported: the underwater image model works on
-8-bit RGB.
+needed here. The underwater image model works on 8-bit RGB: 8-bit colour and grey encodings are read as
+they are, raw Bayer mosaics (``bayer_rggb8`` ..., as a camera driver's ``image_raw`` often is) are
+demosaiced, and 16-bit encodings keep their high byte (a 16-bit image holds 0..65535 for 0..255; either byte
+order).
 """
 from __future__ import annotations
 
@@ -22,8 +24,16 @@ _LAYOUT = {
     "8UC1": (1, (0, 0, 0)),
 }
 
-#: Encodings :func:`image_to_rgb` accepts (``8UC1`` is read like ``mono8``).
-SUPPORTED_ENCODINGS = tuple(_LAYOUT)
+# Bayer mosaics (sensor_msgs names: the colours of the top-left 2x2 block, row by row) -> OpenCV's demosaicing
+# code; OpenCV names a pattern by the second row's second and third pixels (as cv_bridge maps them)
+_BAYER = {"rggb": "COLOR_BayerBG2RGB", "bggr": "COLOR_BayerRG2RGB", "gbrg": "COLOR_BayerGR2RGB",
+          "grbg": "COLOR_BayerGB2RGB"}
+_LAYOUT16 = {"rgb16": "rgb8", "bgr16": "bgr8", "rgba16": "rgba8", "bgra16": "bgra8", "mono16": "mono8",
+             "16UC1": "mono8"}
+
+#: Encodings :func:`image_to_rgb` accepts (``8UC1`` is read like ``mono8``, ``16UC1`` like ``mono16``).
+SUPPORTED_ENCODINGS = (tuple(_LAYOUT) + tuple(f"bayer_{p}8" for p in _BAYER) + tuple(_LAYOUT16)
+                       + tuple(f"bayer_{p}16" for p in _BAYER))
 
 
 def message_bytes(data) -> np.ndarray:
@@ -50,14 +60,15 @@ def image_to_rgb(msg) -> np.ndarray:
     Parameters
     ----------
     msg : object
-        With ``height``, ``width``, ``encoding``, ``step`` and ``data`` (``is_bigendian`` is
-        irrelevant for 8-bit encodings).
+        With ``height``, ``width``, ``encoding``, ``step`` and ``data`` (and ``is_bigendian`` for the
+        16-bit encodings).
 
     Returns
     -------
     ndarray
         (height, width, 3) uint8, RGB order. ``bgr8``/``bgra8`` are reordered, alpha is dropped,
-        ``mono8`` is replicated to three channels. The result may share memory with ``msg.data``
+        ``mono8`` is replicated to three channels, Bayer mosaics are demosaiced (OpenCV, bilinear), 16-bit
+        values keep their high byte. The result may share memory with ``msg.data``
         when no conversion is needed (``rgb8`` without row padding); treat it as read-only or copy.
 
     Raises
@@ -67,21 +78,32 @@ def image_to_rgb(msg) -> np.ndarray:
         ``len(data) != step * height``.
     """
     enc = str(msg.encoding)
-    if enc not in _LAYOUT:
+    if enc not in SUPPORTED_ENCODINGS:
         raise ValueError(f"unsupported image encoding {enc!r}; supported: {', '.join(SUPPORTED_ENCODINGS)}")
-    ch, order = _LAYOUT[enc]
+    bayer = enc[6:10] if enc.startswith("bayer_") else None
+    wide = enc in _LAYOUT16 or enc.endswith("16")
+    base = "mono8" if bayer else (_LAYOUT16[enc] if enc in _LAYOUT16 else enc)
+    ch, order = _LAYOUT[base]
+    size = 2 if wide else 1
     h, w, step = int(msg.height), int(msg.width), int(msg.step)
     if h <= 0 or w <= 0:
         raise ValueError(f"image has no pixels: {w}x{h}")
-    if step < w * ch:
-        raise ValueError(f"image step {step} is shorter than a row of {w} {enc} pixels ({w * ch} bytes)")
+    if step < w * ch * size:
+        raise ValueError(f"image step {step} is shorter than a row of {w} {enc} pixels ({w * ch * size} bytes)")
     buf = message_bytes(msg.data)
     if buf.size != step * h:
         raise ValueError(f"image data has {buf.size} bytes, expected step*height = {step}*{h} = {step * h} "
                          f"for a {w}x{h} {enc} image")
-    rows = buf.reshape(h, step)[:, : w * ch].reshape(h, w, ch)
-    if enc == "rgb8":
-        return rows if step == w * ch else np.ascontiguousarray(rows)
+    rows = buf.reshape(h, step)[:, : w * ch * size]
+    if wide:        # the high byte of each 16-bit value (in the byte order the message states)
+        rows = rows.reshape(h, w * ch, 2)[:, :, 0 if getattr(msg, "is_bigendian", 0) else 1]
+    rows = rows.reshape(h, w, ch)
+    if bayer:
+        import cv2
+
+        return cv2.cvtColor(np.ascontiguousarray(rows[:, :, 0]), getattr(cv2, _BAYER[bayer]))
+    if base == "rgb8":
+        return rows if rows.flags.c_contiguous else np.ascontiguousarray(rows)
     return np.ascontiguousarray(rows[:, :, list(order)])
 
 
