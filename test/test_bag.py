@@ -584,11 +584,13 @@ def test_sixteen_bit_images_keep_their_high_byte_in_either_byte_order():
     v = (rgb.astype(np.uint16) << 8) | np.uint16(0xA7)
     for big in (0, 1):
         dt = ">u2" if big else "<u2"
-        for enc, arr in (("rgb16", v), ("bgr16", v[:, :, ::-1]), ("mono16", v[:, :, 1]), ("16UC1", v[:, :, 1])):
+        for enc, arr in (("rgb16", v), ("bgr16", v[:, :, ::-1]), ("mono16", v[:, :, 1])):
             a = np.ascontiguousarray(arr).astype(dt)
             msg = SimpleNamespace(height=4, width=6, encoding=enc, step=a.nbytes // 4, data=a.tobytes(),
                                   is_bigendian=big)
             want = rgb if enc in ("rgb16", "bgr16") else np.repeat(rgb[:, :, 1:2], 3, axis=2)
             np.testing.assert_array_equal(image_to_rgb(msg), want, err_msg=f"{enc} big-endian={big}")
+    with pytest.raises(ValueError, match="unsupported image encoding '16UC1'"):    # a depth image in mm
+        image_to_rgb(SimpleNamespace(height=1, width=1, encoding="16UC1", step=2, data=bytes(2)))
     with pytest.raises(ValueError, match="unsupported image encoding 'rgb32f'"):
         image_to_rgb(SimpleNamespace(height=1, width=1, encoding="rgb32f", step=12, data=bytes(12)))

@@ -28,10 +28,10 @@ _LAYOUT = {
 # code; OpenCV names a pattern by the second row's second and third pixels (as cv_bridge maps them)
 _BAYER = {"rggb": "COLOR_BayerBG2RGB", "bggr": "COLOR_BayerRG2RGB", "gbrg": "COLOR_BayerGR2RGB",
           "grbg": "COLOR_BayerGB2RGB"}
-_LAYOUT16 = {"rgb16": "rgb8", "bgr16": "bgr8", "rgba16": "rgba8", "bgra16": "bgra8", "mono16": "mono8",
-             "16UC1": "mono8"}
+# (not 16UC1: on an image topic that is a depth image in millimetres, REP 118's other encoding, not grey levels)
+_LAYOUT16 = {"rgb16": "rgb8", "bgr16": "bgr8", "rgba16": "rgba8", "bgra16": "bgra8", "mono16": "mono8"}
 
-#: Encodings :func:`image_to_rgb` accepts (``8UC1`` is read like ``mono8``, ``16UC1`` like ``mono16``).
+#: Encodings :func:`image_to_rgb` accepts (``8UC1`` is read like ``mono8``).
 SUPPORTED_ENCODINGS = (tuple(_LAYOUT) + tuple(f"bayer_{p}8" for p in _BAYER) + tuple(_LAYOUT16)
                        + tuple(f"bayer_{p}16" for p in _BAYER))
 

@@ -406,7 +406,7 @@ class EnhancerNode(Node):
         (img, t_img), (depth_msg, t_d), (mask_msg, t_m), (info, t_i) = match.items
         t_ready = max(t_img, t_d, t_m, t_i)
         compressed = isinstance(img, CompressedImage)
-        if not compressed and str(img.encoding) in ("mono8", "8UC1", "mono16", "16UC1"):
+        if not compressed and str(img.encoding) in ("mono8", "8UC1", "mono16"):
             raise BadInput("mono", f"camera/image_raw is grey ({img.encoding}): the model restores each colour "
                                    f"channel with its own attenuation")
         try:
