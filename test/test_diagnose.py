@@ -277,6 +277,45 @@ def test_snow_is_checked_on_the_pixels_its_particles_leave_alone():
     assert not veil["held"] and veil["unclaimed_share"] == 0.0 and veil["frames_checked"] == 0, veil
 
 
+def test_particles_are_fitted_in_the_current_model_lit_by_its_lamps(tmp_path):
+    """Marine snow is judged after the selection, next to the effects it accepted: its particles are lit by the
+    model's lamps and pass through its camera response, so they are fitted in that model (fitted in the base
+    model alone, under another light, they rendered other particles once sim_camera had the lamps). On a
+    lamp-lit recording with the lamps in the current model, the snow candidate is that model plus particles:
+    its held-out θ is the lamps model's, not the base model's, give or take what particles cost."""
+    from uw_sil.bags.synth import load_truth, synthesize_trial
+    from uw_sil.fit.diagfit import EffectModel, FrameObjective, noise_sigmas
+    from uw_sil.fit.judges.marine_snow import snow_refit
+    from uw_sil.fit.residuals import load_frames, reduce_frame, split_frames
+    from uw_sil.sim.camera import CameraModel
+    from uw_sil.sim.params import RGB_NAMES
+
+    bag = tmp_path / "lamps.mcap"
+    synthesize_trial(bag, n_frames=6, seed=3, camera=CameraModel.from_fov(160, 120),
+                     effects={"artificial_light": "strong"})
+    truth = load_truth(bag)                    # the current model: the recording's own (a perfect selection)
+    frames = load_frames(bag, k=6)
+    fit_f, held_f = split_frames(frames)
+    R = {id(f): reduce_frame(f, 1) for f in frames}
+    base = truth["params"].as_vector()
+    lamps = {"artificial_light": dict(truth["effect_params"]["artificial_light"])}
+    r = snow_refit(R, fit_f, held_f, base, "exp2", 0, effects=("artificial_light",), values=lamps)
+    assert r["params"]["effects"]["artificial_light"] == lamps["artificial_light"]      # held at its values
+    rheld = [R[id(f)] for f in held_f]
+
+    def held_theta(effects, values):
+        m = EffectModel(rheld, effects, values=values, free={e: () for e in effects}, seed=50)
+        with FrameObjective(rheld, m, noise_sigmas(rheld), seed=0) as ob:
+            return float(ob(m.x0(base)[None])[0])
+
+    with_lamps, without = held_theta(("artificial_light",), lamps), held_theta((), {})
+    assert abs(with_lamps - without) > 0.02, (with_lamps, without)
+    snow = float(np.mean(r["held_pf"]))
+    assert abs(snow - with_lamps) < 0.25 * abs(without - with_lamps), (snow, with_lamps, without,
+                                                                       r["params"]["effects"]["marine_snow"])
+    assert set(RGB_NAMES) == set(r["params"]["base"])
+
+
 def test_forward_scatter_is_named_beside_dense_marine_snow(tmp_path):
     """A pair: strong forward scatter under dense marine snow. The particles are a random process of their
     own that no proxy of the expected image explains; counted in the screening they shrank the blur's share

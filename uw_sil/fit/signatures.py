@@ -56,7 +56,8 @@ import numpy as np
 from .residuals import ReducedFrame, dilate, erode
 
 __all__ = ["Signature", "SignatureContext", "run_signatures", "luminance", "jsonable",
-           "speck_masks", "speck_density", "particle_masks", "noise_statistics", "NoisePixels", "trimmed_sigma", "median_filter"]
+           "speck_masks", "speck_sizes", "particle_masks", "noise_statistics", "NoisePixels", "trimmed_sigma",
+           "median_filter"]
 
 _MAD = 1.4826
 _LUMA = np.array([0.299, 0.587, 0.114], np.float32)
@@ -722,15 +723,20 @@ def speck_masks(R: np.ndarray, S: np.ndarray, hit: np.ndarray, k: float = 5.0):
     return (hp > k * scale) & ok, (hp < -k * scale) & ok, ok
 
 
-def speck_density(R: np.ndarray, S: np.ndarray, hit: np.ndarray) -> tuple:
-    """(positive, negative) outlier blobs per megapixel of tested area (see :func:`speck_masks`)."""
+def speck_sizes(R: np.ndarray, S: np.ndarray, hit: np.ndarray) -> tuple:
+    """(positive outlier blobs per megapixel of tested area, their mean area in pixels (nan without blobs), the
+    median of ``R - S`` between them in grey levels): the statistics a particle model is fitted to
+    (:func:`speck_masks`). The count alone leaves size, number and brightness free: a few bright particles, many
+    faint ones whose brightest show, and large blurred ones give as many blobs; the faint ones also lay a haze
+    between the blobs."""
     import cv2
 
-    pos, neg, ok = speck_masks(R, S, hit)
-    mp = max(ok.sum(), 1) / 1e6
-    npos = cv2.connectedComponentsWithStats(pos.astype(np.uint8), 8)[0] - 1
-    nneg = cv2.connectedComponentsWithStats(neg.astype(np.uint8), 8)[0] - 1
-    return npos / mp, nneg / mp
+    pos, _, ok = speck_masks(R, S, hit)
+    n, _, stats, _ = cv2.connectedComponentsWithStats(pos.astype(np.uint8), 8)
+    area = float(stats[1:, cv2.CC_STAT_AREA].mean()) if n > 1 else float("nan")
+    between = ok & ~dilate(pos, 1)
+    haze = float(np.median((R - S)[between])) if between.any() else float("nan")
+    return (n - 1) / (max(ok.sum(), 1) / 1e6), area, haze
 
 
 def sig_marine_snow(ctx: SignatureContext) -> Signature:
