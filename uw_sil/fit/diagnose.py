@@ -264,10 +264,10 @@ def theta_as_simulated(frames, R_hi: dict, base: dict, effects: dict, fog: str, 
 
     full = [reduce_frame(f, 1) for f in frames]
     model = EffectModel(full, tuple(effects), values=effects, free={e: () for e in effects}, fog=fog, seed=seed)
-    base = np.array([base[k] for k in RGB_NAMES], float)
+    x = model.x0([base[k] for k in RGB_NAMES])[None]
     out = np.empty(len(frames))
     for k, f in enumerate(frames):
-        img = model.simulate(k, model.x0(base)[None])[0] * np.float32(255.0)
+        img = model.simulate(k, x)[0] * np.float32(255.0)
         if not model.owns_noise:
             NoiseField(img.shape, water_noise_sigma(f.image, ~np.isfinite(f.render.range)),
                        seed=seed + 7919 * k).apply(img)

@@ -39,9 +39,10 @@ def snow_refit(R_hi, fit_f, held_f, base_x, fog, seed, effects: tuple = (), valu
     fixed = {e: () for e in effects}
 
     def frames_stats(rfs, x_list, eff_model, x_none):
-        """per frame: the recording's (specks per megapixel, mean speck area), and the simulation's for each
-        parameter vector in x_list: arrays (K, 2) and (K, N, 2) (``x_none``: the model without particles, the
-        noise-free simulation the specks are found against)."""
+        """per frame: the recording's :func:`~uw_sil.fit.signatures.speck_sizes` (specks per megapixel, mean
+        speck area, haze between them), and the simulation's for each parameter vector in x_list: arrays (K, 3)
+        and (K, N, 3) (``x_none``: the model without particles, the noise-free simulation the specks are found
+        against)."""
         noise = noise_sigmas(rfs)
         out_real, out_sim = [], []
         for k, rf in enumerate(rfs):
