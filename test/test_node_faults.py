@@ -196,6 +196,74 @@ def test_ctrl_c_while_spinning_never_crashes_the_clean_up():
         done.returncode, done.stdout[-2000:], done.stderr[-4000:])
 
 
+SIGNALS_DURING_CLEAN_UP = """
+import os, signal, sys, time
+import rclpy
+import uw_sil.nodes as un
+
+def quiet(*_):
+    pass
+
+def stopped_node(ready, hook):
+    if hook:
+        un._pass_over_interrupted_futures()      # what run_node installs in a node executable
+    signal.signal(signal.SIGINT, quiet)          # a Python handler, as the nodes have (rclpy chains to it)
+    rclpy.init()
+    os.write(ready, b"r")
+    deadline = time.monotonic() + 5
+    while rclpy.ok() and time.monotonic() < deadline:   # the first SIGINTs shut rclpy down
+        time.sleep(0.0005)
+    un._stop_signals[:] = [signal.SIGINT]
+    un._settle_signals(rclpy)                    # ignores SIGINT, takes rclpy's handlers out: SIGINTs keep coming
+    for _ in range(1000):
+        pass                                     # a signal tripped while being ignored is reported here
+    return 0
+
+ends = []
+for i in range({n}):
+    r, w = os.pipe()
+    pid = os.fork()
+    if pid == 0:
+        os.close(r)
+        code = stopped_node(w, {hook})
+        sys.stderr.flush()
+        os._exit(code)
+    os.close(w)
+    os.read(r, 1)
+    os.close(r)
+    while True:                                  # SIGINT after SIGINT until the process has ended
+        try:
+            os.kill(pid, signal.SIGINT)
+        except ProcessLookupError:
+            break
+        done, status = os.waitpid(pid, os.WNOHANG)
+        if done:
+            ends.append(os.waitstatus_to_exitcode(status))
+            break
+print("exit codes", sorted(set(ends)), "of", len(ends), flush=True)
+"""
+
+
+def test_signals_arriving_all_through_the_clean_up_print_nothing():
+    """``ros2 launch`` forwards a second SIGINT after the terminal's. One that arrives while SIGINT is being
+    set to SIG_IGN (here, or for an instant inside rclpy's ``uninstall_signal_handlers``) is reported by
+    CPython as ``OSError: Signal 2 ignored due to race condition``, a traceback in the log of a node that
+    ended cleanly (a graph test failed on it, once in eight loaded runs). 400 stopped processes, each sent
+    SIGINT after SIGINT by their parent until they end, print nothing with the nodes' unraisable hook; the
+    control without it shows that the race is reached (4-18 reports in 300 stops here, on a loaded machine):
+    up to five batches of 400 are run until one is; if none is, the test warns that it tested nothing."""
+    def stops(hook: bool) -> str:
+        done = subprocess.run([sys.executable, "-c", SIGNALS_DURING_CLEAN_UP.format(n=400, hook=hook)],
+                              capture_output=True, text=True, timeout=300, env=ros_env(domain_id()))
+        assert done.returncode == 0 and "exit codes [0] of 400" in done.stdout, (done.stdout, done.stderr[-3000:])
+        return done.stderr
+
+    hooked = stops(True)
+    assert "Traceback" not in hooked and "ignored due to race condition" not in hooked, hooked[-3000:]
+    if not any("Signal 2 ignored due to race condition" in stops(False) for _ in range(5)):
+        warnings.warn("2000 stops without the hook never reached the race: this run did not test the hook")
+
+
 HALF_BUILT_FUTURE = """
 import sys
 import uw_sil.nodes as un

@@ -308,21 +308,31 @@ def _report_crashes():
 
 
 def _pass_over_interrupted_futures():
-    """After a stop signal, the one error a half-built rclpy ``Future`` raises when it is collected is not
-    printed; every other error the interpreter cannot raise (``sys.unraisablehook``) still is.
+    """After a stop signal, two errors the interpreter reports but cannot raise (``sys.unraisablehook``) are
+    not printed; every other one still is.
 
     Our SIGINT/SIGTERM handler raises KeyboardInterrupt wherever the main thread is. Landing inside rclpy's
     ``Task`` constructor, before ``Future.__init__`` has set ``_exception``, it leaves a half-built task,
     whose ``__del__`` then fails with ``AttributeError: 'Task' object has no attribute '_exception'``
     ("Exception ignored in: Future.__del__" and a traceback in the node's log; ``backward_fit``, once in a
-    fresh-clone test run). That object is the interrupted callback's and nothing depends on it."""
+    fresh-clone test run). That object is the interrupted callback's and nothing depends on it.
+
+    ``OSError: Signal 2 ignored due to race condition``: CPython's report of a signal that arrived while its
+    handler was being set to SIG_IGN (:func:`_ignore_signals`, or rclpy's ``uninstall_signal_handlers``, which
+    puts the interpreter's handler back for an instant before it restores SIG_IGN): the signal is ignored, as
+    asked. ``ros2 launch`` forwards a second SIGINT after the terminal's; once in eight loaded test runs it
+    landed there and the traceback failed a graph test although the node ended cleanly (reproduced: 18 in 300
+    stops with SIGINTs arriving throughout the clean-up)."""
     default = sys.unraisablehook
+    ignored = {f"Signal {int(s)} ignored due to race condition" for s in (signal.SIGINT, signal.SIGTERM)}
 
     def hook(unraisable):
-        where = unraisable.object
-        if (_stop_signals and isinstance(unraisable.exc_value, AttributeError)
+        where, exc = unraisable.object, unraisable.exc_value
+        if (_stop_signals and isinstance(exc, AttributeError)
                 and getattr(where, "__module__", "") == "rclpy.task"
                 and getattr(where, "__qualname__", "") == "Future.__del__"):
+            return
+        if _stop_signals and isinstance(exc, OSError) and str(exc) in ignored:
             return
         default(unraisable)
 
