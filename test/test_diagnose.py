@@ -876,6 +876,11 @@ def test_doubts_lower_confidence():
     assert any("power" in d and "bound" in d for d in lamp.plausibility(edge))
     bc = JUDGES["backscatter_coefficient"].plausibility({"ratio_r": 5.9, "ratio_g": 1.0, "ratio_b": 1.0, "decay": 0.2})
     assert bc and "β_B/β_D" in bc[0]
+    noise = JUDGES["sensor_noise"]
+    fitted = {"shot": 0.56, "read": 1.6, "corr": 1.2, "fpn": 0.003, "col": 3.3, "row": 0.05}
+    assert noise.plausibility(fitted) == [] and noise.plausibility(dict(fitted, fpn=0.02)) == []   # strong preset
+    pattern = noise.plausibility(dict(fitted, fpn=0.035))                # what one fit of a foreign dive gave
+    assert len(pattern) == 1 and "3.5 %" in pattern[0] and "pixel gain pattern" in pattern[0]
     assert _confidence(3.0, []) > _confidence(3.0, ["x"]) > _confidence(3.0, ["x", "y"])
     assert base_doubts({"a_r": 0.4, "a_g": 0.0004, "a_b": 0.1, "b_r": 0, "b_g": 0, "b_b": 0, "rho_f": 0.3})
     assert not base_doubts({"a_r": 0.4, "a_g": 0.1, "a_b": 0.1, "b_r": 0, "b_g": 0, "b_b": 0, "rho_f": 0.0})

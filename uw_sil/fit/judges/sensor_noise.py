@@ -182,6 +182,21 @@ class SensorNoiseJudge(Judge):
         ok = st["improvement"] > st["margin"] and (not current.effects or gain > -margin)
         return ok, st["improvement"] / (3 * st["margin"]) if ok else 0.0, "statistic"
 
+    #: Largest photo-response non-uniformity (pixel gain pattern, std) camera data sheets give (EMVA 1288
+    #: measurements of CMOS and CCD sensors: 0.3-2 %), with room for the fit's scatter (the strong preset is 2 %).
+    MAX_PIXEL_PATTERN = 0.03
+
+    def ranges(self, e):
+        """A pixel gain pattern beyond any camera's. Shot noise and that pattern both grow with brightness, and
+        the statistics separate them poorly: on the foreign multi-effect dive (camera response, seafloor, pose,
+        noise without any pixel pattern) one run of the diagnosis fitted 3.5 % where the next fitted 0.3 %, and
+        drawn, the 3.5 % cost 0.03 of held-out θ as simulated."""
+        fpn = float(e.get("fpn", 0.0))
+        if fpn > self.MAX_PIXEL_PATTERN:
+            return [f"a pixel gain pattern of {100 * fpn:.1f} % is beyond any camera's (data sheets, EMVA 1288: "
+                    f"at most ~2 %): the fit may have taken what the model lacks on bright surfaces for noise"]
+        return []
+
     def explain(self, e, gain, sig):
         return (f"the camera noise has structure the simulation's constant noise lacks: variance rising with "
                 f"brightness (shot gain {e.get('shot', 0):.2f} DN/DN, read noise {e.get('read', 0):.1f} DN), "
