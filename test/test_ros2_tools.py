@@ -9,7 +9,8 @@ idempotent, < 1 s once done) and builds the package once.
 Upstream behaviours the tests are built around (``shared/ros2-cli/README.md``): the CLI daemon races just
 after it starts (every command runs with ``--no-daemon --spin-time 3``); `ros2 run` forwards no signal
 (the process group is signalled, as a terminal's Ctrl-C does); `ros2 param set` exits 0 when the node
-rejects a value (its output is checked).
+rejects a value (its output is checked); `ros2 param` waits for a service's answer without a deadline (a
+command still running after 90 s is stopped with its stack printed and run once more, :meth:`Workspace.run`).
 """
 import os
 import re
