@@ -206,7 +206,7 @@ def quiet(*_):
 
 def stopped_node(ready, hook):
     if hook:
-        un._pass_over_interrupted_futures()      # what run_node installs in a node executable
+        un._pass_over_stop_debris()      # what run_node installs in a node executable
     signal.signal(signal.SIGINT, quiet)          # a Python handler, as the nodes have (rclpy chains to it)
     rclpy.init()
     os.write(ready, b"r")
@@ -268,7 +268,7 @@ HALF_BUILT_FUTURE = """
 import sys
 import uw_sil.nodes as un
 from rclpy.task import Task
-un._pass_over_interrupted_futures()
+un._pass_over_stop_debris()
 if "{when}" == "stopped":
     un._stop_signals.append(2)
 half = object.__new__(Task)          # what a KeyboardInterrupt inside Task.__init__ leaves behind

@@ -251,7 +251,7 @@ def run_node(make_node: Callable, spin: Optional[Callable] = None, args=None, na
     _handle_stop_signals()
     if exit_process:
         _report_crashes()
-        _pass_over_interrupted_futures()
+        _pass_over_stop_debris()
     try:
         code = _run_node(make_node, spin, args, name, user_errors, exit_process)
     except KeyboardInterrupt:                       # a signal in the few instructions around the clean-up
@@ -307,7 +307,7 @@ def _report_crashes():
     faulthandler.register(signal.SIGUSR1, file=sys.__stderr__, all_threads=True, chain=False)
 
 
-def _pass_over_interrupted_futures():
+def _pass_over_stop_debris():
     """After a stop signal, two errors the interpreter reports but cannot raise (``sys.unraisablehook``) are
     not printed; every other one still is.
 
