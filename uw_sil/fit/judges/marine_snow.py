@@ -38,12 +38,11 @@ def snow_refit(R_hi, fit_f, held_f, base_x, fog, seed, effects: tuple = (), valu
     effects = tuple(effects)
     fixed = {e: () for e in effects}
 
-    def frames_stats(rfs, x_list, eff_model, x_none):
+    def frames_stats(rfs, x_list, eff_model, x_none, noise):
         """per frame: the recording's :func:`~uw_sil.fit.signatures.speck_sizes` (specks per megapixel, mean
         speck area, haze between them), and the simulation's for each parameter vector in x_list: arrays (K, 3)
         and (K, N, 3) (``x_none``: the model without particles, the noise-free simulation the specks are found
-        against)."""
-        noise = noise_sigmas(rfs)
+        against; ``noise``: the frames' :func:`~uw_sil.fit.diagfit.noise_sigmas`)."""
         out_real, out_sim = [], []
         for k, rf in enumerate(rfs):
             S = luminance(255.0 * (eff_model.simulate(k, x_none[None])[0] if effects else base_sim(rf, base_x, fog)))
@@ -60,6 +59,7 @@ def snow_refit(R_hi, fit_f, held_f, base_x, fog, seed, effects: tuple = (), valu
 
     rfit = [R_hi[id(f)] for f in fit_f]
     rheld = [R_hi[id(f)] for f in held_f]
+    noise_fit, noise_held = noise_sigmas(rfit), noise_sigmas(rheld)
     names = effects + ("marine_snow",)
     model = EffectModel(rfit, names, values=values, free=fixed, fog=fog, seed=seed)
     x_base = model.x0(base_x, {"marine_snow": {"density": 0.0}})
@@ -68,25 +68,25 @@ def snow_refit(R_hi, fit_f, held_f, base_x, fog, seed, effects: tuple = (), valu
     grid = [(d, b, z) for d in (0.0, 15.0, 40.0, 100.0, 250.0, 600.0, 1500.0, 3000.0) for b in (0.3, 0.75, 1.5, 3.0)
             for z in (0.5, 1.0, 2.0, 5.0)]
     xs = [model.x0(base_x, {"marine_snow": {"density": d, "brightness": b, "size": z}}) for d, b, z in grid]
-    real, sim = frames_stats(rfit, xs, model, x_base)
+    real, sim = frames_stats(rfit, xs, model, x_base, noise_fit)
     e_count = np.abs(np.log1p(sim[..., 0]) - np.log1p(real[:, None, 0]))
     e_area = np.abs(np.log(sim[..., 1]) - np.log(real[:, None, 1]))
     # the haze between the specks, in units of the frame's camera noise (luminance)
-    sig = np.array([max(float(np.mean(n)), 0.5) for n in noise_sigmas(rfit)])
+    sig = np.array([max(float(np.mean(n)), 0.5) for n in noise_fit])
     e_haze = np.abs(sim[..., 2] - real[:, None, 2]) / sig[:, None]
     err = sum(np.where(np.isfinite(e), e, 0.0) for e in (e_count, e_area, e_haze)).mean(axis=0)
     j = int(np.argmin(err))
     x = xs[j]
     hmodel = model.like(rheld, seed=seed + 50)
-    real_h, sim_h = frames_stats(rheld, [x_base, x], hmodel, x_base)
+    real_h, sim_h = frames_stats(rheld, [x_base, x], hmodel, x_base, noise_held)
     real_h, sim_h = real_h[:, 0], sim_h[..., 0]            # judged on the count, as the signature reads it
     e_base = np.abs(np.log1p(sim_h[:, 0]) - np.log1p(real_h))
     e_cand = np.abs(np.log1p(sim_h[:, 1]) - np.log1p(real_h))
     imp = e_base - e_cand
-    with FrameObjective(rheld, hmodel, noise_sigmas(rheld), seed=seed) as oh:
+    with FrameObjective(rheld, hmodel, noise_held, seed=seed) as oh:
         held_pf = oh.per_frame(x[None])[0]
     unclaimed = unclaimed_theta(rheld, hmodel, x_base, x, seed=seed)
-    with FrameObjective(rfit, model, noise_sigmas(rfit), seed=seed) as of:
+    with FrameObjective(rfit, model, noise_fit, seed=seed) as of:
         th_train = float(of(x[None])[0])
     stat = {"name": "density of bright specks per megapixel", "real": float(np.mean(real_h)),
             "base_sim": float(np.mean(sim_h[:, 0])), "candidate_sim": float(np.mean(sim_h[:, 1])),
