@@ -342,9 +342,15 @@ class Renderer:
         rng = depth * self._ray_norm
         labels = self._label_lut[part_ids]
         rgb = color.astype(np.float32) * np.float32(1.0 / 255.0)
+        # water pixels are 0: their shading factor set to 0 (the albedo is finite and >= 0, so the product is the
+        # +0.0 an assignment would write), or the pixels zeroed where nothing is shaded
+        miss = ~hit
         if self.shading == "lambert":
-            rgb *= self._lambert(depth, part_ids, hit)[..., None]
-        rgb[~hit] = 0.0
+            shade = self._lambert(depth, part_ids, hit)
+            np.copyto(shade, np.float32(0.0), where=miss)
+            rgb *= shade[..., None]
+        else:
+            np.copyto(rgb, np.float32(0.0), where=miss[..., None])
         return RenderResult(rgb=rgb, depth=depth, range=rng, labels=labels, part_ids=part_ids)
 
     def render_many(self, poses):
@@ -362,7 +368,7 @@ class Renderer:
         the smaller change (never across silhouettes or parts); isolated pixels count as
         facing the camera.
         """
-        w = np.where(hit, np.float32(1.0) / depth, np.float32(0.0))
+        w = np.float32(1.0) / depth             # 0 where nothing is hit (depth inf)
         dwu = _one_sided(w, part_ids, axis=1)
         dwv = _one_sided(w, part_ids, axis=0)
         cam = self._camera
@@ -448,20 +454,25 @@ def _iter_meshes(scene):
 
 
 def _one_sided(w, part_ids, axis):
-    """Per-pixel derivative of ``w`` along ``axis`` from the smoother same-part neighbour."""
+    """Per-pixel derivative of ``w`` along ``axis`` from the smoother same-part neighbour (the forward difference
+    on a tie; 0 where neither neighbour is of the same part)."""
     inf = np.float32(np.inf)
-    fwd = np.full_like(w, inf)
-    bwd = np.full_like(w, inf)
-    if axis == 1:
-        d = w[:, 1:] - w[:, :-1]
-        same = part_ids[:, 1:] == part_ids[:, :-1]
-        fwd[:, :-1] = np.where(same, d, inf)
-        bwd[:, 1:] = fwd[:, :-1]
-    else:
-        d = w[1:, :] - w[:-1, :]
-        same = part_ids[1:, :] == part_ids[:-1, :]
-        fwd[:-1, :] = np.where(same, d, inf)
-        bwd[1:, :] = fwd[:-1, :]
-    out = np.where(np.abs(fwd) <= np.abs(bwd), fwd, bwd)
-    out[np.isinf(out)] = 0.0
+    n = w.shape[axis]
+
+    def cut(a, lo, hi):          # a[lo:hi] along the axis
+        return a[:, lo:hi] if axis == 1 else a[lo:hi]
+
+    # E[j + 1] = w[j + 1] - w[j] within a part, inf across parts and beyond the image (along the axis): pixel j's
+    # forward difference is E[j + 1], its backward one E[j]
+    shape = list(w.shape)
+    shape[axis] = n + 1
+    E = np.empty(shape, np.float32)
+    cut(E, 0, 1)[...] = inf
+    cut(E, n, n + 1)[...] = inf
+    d = cut(E, 1, n)
+    np.subtract(cut(w, 1, n), cut(w, 0, n - 1), out=d)
+    np.copyto(d, inf, where=cut(part_ids, 1, n) != cut(part_ids, 0, n - 1))
+    A = np.abs(E)
+    out = np.where(cut(A, 1, n + 1) <= cut(A, 0, n), cut(E, 1, n + 1), cut(E, 0, n))
+    np.copyto(out, np.float32(0.0), where=np.isinf(out))
     return out
