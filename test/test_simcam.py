@@ -29,3 +29,16 @@ def test_noise_has_the_requested_sigma_and_changes_per_frame():
         assert not np.array_equal(d1, d2)
         with pytest.raises(ValueError, match="noise_sigma"):
             noisy.noise_sigma = -1.0
+
+
+def test_a_frame_without_image_has_the_same_geometry_and_no_colour_work():
+    """``render(T, image=False)`` (sim_camera when nobody takes its images): the render's depth, range, labels and
+    part ids bit for bit as with the image, no image and no clean colour."""
+    with SimCamera(camera=CAM, effects="vignetting=strong", noise_sigma=2.0, seed=3) as cam:
+        pose = facing_pose(1.7, yaw=0.3)
+        full, geo = cam.render(pose), cam.render(pose, image=False)
+        assert geo.image is None and geo.render.rgb is None and full.image is not None
+        for k in ("depth", "range", "labels", "part_ids"):
+            a, b = getattr(full.render, k), getattr(geo.render, k)
+            assert a.dtype == b.dtype and a.tobytes() == b.tobytes(), k
+        assert cam.render(pose).image.shape == full.image.shape       # and the next frame has its image again

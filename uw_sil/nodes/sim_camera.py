@@ -9,7 +9,8 @@ Subscribes
 Publishes (stamped with the pose's stamp, frame = the pose's frame)
     ``sim/image_raw`` (rgb8), ``sim/image_clean`` (rgb8), ``sim/depth`` (32FC1 planar z in metres,
     REP 118, +inf where nothing was hit), ``sim/mask`` (mono8 labels: 0 water, 1 panel, 2 seafloor),
-    ``sim/camera_info``.
+    ``sim/camera_info``. A topic nobody subscribes to is not published; while nobody takes either image, the
+    frame's colour and underwater model are not computed at all (an enhancer takes only depth and mask).
 Parameters (live, validated; set with ``ros2 param set`` or the parameter services)
     ``a_r a_g a_b`` attenuation [1/m], ``b_r b_g b_b`` background [0..1], ``rho_f`` fog density [1/m],
     ``fog_mode`` (exp2|exp|none), ``noise_sigma`` (camera noise in grey levels); read-only: ``model_path``, ``width``, ``height``, ``hfov_deg``,
@@ -279,16 +280,19 @@ class SimCameraNode(Node):
         except ValueError as e:
             self.get_logger().error(f"ignoring pose: {e}", throttle_duration_sec=5.0)
             return
-        frame = self.sim.render(T)
+        # Images nobody subscribes to are neither rendered nor converted: an enhancer takes only the depth and the
+        # mask (the colour pass, the shading and the underwater model are most of a 640x480 frame's time).
+        wanted = [p for p in (self.pub_image, self.pub_clean, self.pub_depth, self.pub_mask)
+                  if p.get_subscription_count() > 0]
+        frame = self.sim.render(T, image=self.pub_image in wanted or self.pub_clean in wanted)
         header = msg.header
-        # Images nobody subscribes to are not converted (a few ms each at 640x480).
-        for pub, fields in ((self.pub_image, lambda: rgb_to_image_fields(frame.image_uint8())),
-                            (self.pub_clean, lambda: rgb_to_image_fields(
-                                np.clip(np.rint(frame.render.rgb * 255), 0, 255).astype(np.uint8))),
-                            (self.pub_depth, lambda: depth_to_image_fields(frame.render.depth)),
-                            (self.pub_mask, lambda: rgb_to_image_fields(frame.render.labels, "mono8"))):
-            if pub.get_subscription_count() > 0:
-                pub.publish(Image(header=header, **fields()))
+        fields = {self.pub_image: lambda: rgb_to_image_fields(frame.image_uint8()),
+                  self.pub_clean: lambda: rgb_to_image_fields(
+                      np.clip(np.rint(frame.render.rgb * 255), 0, 255).astype(np.uint8)),
+                  self.pub_depth: lambda: depth_to_image_fields(frame.render.depth),
+                  self.pub_mask: lambda: rgb_to_image_fields(frame.render.labels, "mono8")}
+        for pub in wanted:
+            pub.publish(Image(header=header, **fields[pub]()))
         self.pub_info.publish(CameraInfo(header=header, **self.sim.camera.camera_info_fields()))
         self.frames += 1
 

@@ -167,9 +167,9 @@ class RenderResult:
 
     Attributes
     ----------
-    rgb : (H, W, 3) float32
+    rgb : (H, W, 3) float32, or None
         Clean radiance in [0, 1] (albedo times shading, see the module docstring);
-        0 where nothing is hit.
+        0 where nothing is hit. None for a render of the geometry only (``Renderer.render(T, colour=False)``).
     depth : (H, W) float32
         Planar depth z along the optical axis, metres; ``inf`` where nothing is hit.
     range : (H, W) float32
@@ -307,13 +307,17 @@ class Renderer:
 
     # ------------------------------------------------------------------ rendering
 
-    def render(self, T_cam_panel) -> RenderResult:
+    def render(self, T_cam_panel, colour: bool = True) -> RenderResult:
         """Render the model seen with pose ``T_cam_panel``.
 
         Parameters
         ----------
         T_cam_panel : (4, 4) array_like
             Rigid transform of the model frame into the camera optical frame.
+        colour : bool, optional
+            False: the geometry only (depth, range, labels, part ids, from the segmentation pass), ``rgb`` None;
+            the colour pass and the shading are skipped (a consumer that needs no image: about 40 % of a
+            640x480 frame's time).
 
         Returns
         -------
@@ -333,7 +337,7 @@ class Renderer:
         T_panel_cam[:3, 3] = -R.T @ T[:3, 3]
         self._scene.set_pose(self._camera_node, T_panel_cam @ _CV_TO_GL)
 
-        color, _ = self._offscreen.render(self._scene, flags=self._flags_color)
+        color = self._offscreen.render(self._scene, flags=self._flags_color)[0] if colour else None
         seg, depth = self._offscreen.render(self._scene, flags=self._flags_seg, seg_node_map=self._seg_map)
 
         part_ids = seg[..., 0].astype(np.uint16) | (seg[..., 1].astype(np.uint16) << 8)
@@ -341,6 +345,8 @@ class Renderer:
         depth = np.where(hit, depth, np.float32(np.inf)).astype(np.float32, copy=False)
         rng = depth * self._ray_norm
         labels = self._label_lut[part_ids]
+        if color is None:
+            return RenderResult(rgb=None, depth=depth, range=rng, labels=labels, part_ids=part_ids)
         rgb = color.astype(np.float32) * np.float32(1.0 / 255.0)
         # water pixels are 0: their shading factor set to 0 (the albedo is finite and >= 0, so the product is the
         # +0.0 an assignment would write), or the pixels zeroed where nothing is shaded

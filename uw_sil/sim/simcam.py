@@ -29,7 +29,7 @@ __all__ = ["SimFrame", "SimCamera"]
 class SimFrame:
     """One simulated camera frame."""
 
-    image: np.ndarray     # (H, W, 3) float32 in [0, 1]: the underwater image
+    image: np.ndarray     # (H, W, 3) float32 in [0, 1]: the underwater image (None: geometry only)
     render: object        # uw_sil.sim.render.RenderResult: clean rgb, depth, range, labels
 
     def image_uint8(self) -> np.ndarray:
@@ -119,8 +119,13 @@ class SimCamera:
         if cam != self.renderer.camera:
             self.renderer.camera = cam
 
-    def render(self, T_cam_panel) -> SimFrame:
-        rr = self.renderer.render(T_cam_panel)
+    def render(self, T_cam_panel, image: bool = True) -> SimFrame:
+        """The frame seen with pose ``T_cam_panel``. ``image=False``: the render's geometry only (depth, range,
+        labels: what e.g. an enhancer needs), no colour pass and no underwater model; ``image`` and ``render.rgb``
+        are then None."""
+        rr = self.renderer.render(T_cam_panel, colour=image)
+        if not image:
+            return SimFrame(None, rr)
         if self._effects:
             img = UnderwaterModel(self.params, self._effects, self.fog).degrade(
                 rr, self.camera, rng=self._rng, pose=T_cam_panel)
