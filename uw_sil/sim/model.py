@@ -42,6 +42,7 @@ import numpy as np
 
 from .effects import EFFECTS, EFFECT_ORDER, get_effect, parse_effects
 from .effects.base import ModelTerms, effect_rng
+from .normals import plane_terms
 from .optics import FOG_MODES, invert_transmission
 from .params import UnderwaterParams, validate_rgb_params
 
@@ -178,32 +179,11 @@ def _camera_key(camera) -> tuple:
             float(camera.cy))
 
 
-def _one_sided(w, part, axis):
-    inf = np.float32(np.inf)
-    fwd = np.full_like(w, inf)
-    bwd = np.full_like(w, inf)
-    if axis == 1:
-        d = w[:, 1:] - w[:, :-1]
-        same = part[:, 1:] == part[:, :-1]
-        fwd[:, :-1] = np.where(same, d, inf)
-        bwd[:, 1:] = fwd[:, :-1]
-    else:
-        d = w[1:] - w[:-1]
-        same = part[1:] == part[:-1]
-        fwd[:-1] = np.where(same, d, inf)
-        bwd[1:] = fwd[:-1]
-    out = np.where(np.abs(fwd) <= np.abs(bwd), fwd, bwd)
-    out[np.isinf(out)] = 0.0
-    return out
-
-
 def _normals_from_depth(depth, part, hit, camera, xt, yt) -> np.ndarray:
     """Unit normals towards the camera from planar depth (see :class:`Geometry`)."""
     w = np.where(hit, np.float32(1.0) / np.where(hit, depth, np.float32(1.0)), np.float32(0.0))
     part = np.where(hit, part, 0)
-    mx = np.float32(camera.fx) * _one_sided(w, part, 1)
-    my = np.float32(camera.fy) * _one_sided(w, part, 0)
-    mz = w - xt * mx - yt * my                   # (mx, my, mz) = n / d for the plane n.X = d (n away from camera)
+    mx, my, mz = plane_terms(w, part, camera.fx, camera.fy, xt, yt)   # n / d for the plane n.X = d (n away from camera)
     norm = np.sqrt(mx * mx + my * my + mz * mz)
     ok = hit & (norm > 0)
     safe = np.where(ok, norm, np.float32(1.0))

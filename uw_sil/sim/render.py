@@ -77,6 +77,7 @@ from pathlib import Path
 import numpy as np
 
 from .camera import CameraModel
+from .normals import plane_terms
 from .scene import node_label
 
 __all__ = ["RenderResult", "Renderer", "render", "DEFAULT_ALBEDO"]
@@ -365,22 +366,11 @@ class Renderer:
             yield self.render(T)
 
     def _lambert(self, depth, part_ids, hit) -> np.ndarray:
-        """Shading factor ambient + (1 - ambient) * max(0, cos(normal, optical axis)).
-
-        On a plane ``n . X = d`` the inverse depth ``w = 1/z`` is affine in the pixel
-        coordinates, ``w = (n_x xt + n_y yt + n_z) / d`` with ``xt = (u - cx)/fx``,
-        ``yt = (v - cy)/fy``; hence ``n ~ (fx dw/du, fy dw/dv, w - xt fx dw/du - yt fy dw/dv)``.
-        Derivatives are one-sided differences towards the neighbour of the same part with
-        the smaller change (never across silhouettes or parts); isolated pixels count as
-        facing the camera.
-        """
+        """Shading factor ambient + (1 - ambient) * max(0, cos(normal, optical axis)), the normal of the planar
+        face from the depth map (:mod:`uw_sil.sim.normals`; isolated pixels count as facing the camera)."""
         w = np.float32(1.0) / depth             # 0 where nothing is hit (depth inf)
-        dwu = _one_sided(w, part_ids, axis=1)
-        dwv = _one_sided(w, part_ids, axis=0)
         cam = self._camera
-        mx = np.float32(cam.fx) * dwu
-        my = np.float32(cam.fy) * dwv
-        mz = w - self._xt * mx - self._yt * my
+        mx, my, mz = plane_terms(w, part_ids, cam.fx, cam.fy, self._xt, self._yt)
         norm = np.sqrt(mx * mx + my * my + mz * mz)
         cos = np.divide(mz, norm, out=np.ones_like(mz), where=norm > 0)
         np.clip(cos, 0.0, 1.0, out=cos)
@@ -457,28 +447,3 @@ def _iter_meshes(scene):
         yield str(name), np.asarray(T, dtype=float), geom
     if skipped:
         warnings.warn(f"not rendering nodes without triangles: {skipped}", stacklevel=3)
-
-
-def _one_sided(w, part_ids, axis):
-    """Per-pixel derivative of ``w`` along ``axis`` from the smoother same-part neighbour (the forward difference
-    on a tie; 0 where neither neighbour is of the same part)."""
-    inf = np.float32(np.inf)
-    n = w.shape[axis]
-
-    def cut(a, lo, hi):          # a[lo:hi] along the axis
-        return a[:, lo:hi] if axis == 1 else a[lo:hi]
-
-    # E[j + 1] = w[j + 1] - w[j] within a part, inf across parts and beyond the image (along the axis): pixel j's
-    # forward difference is E[j + 1], its backward one E[j]
-    shape = list(w.shape)
-    shape[axis] = n + 1
-    E = np.empty(shape, np.float32)
-    cut(E, 0, 1)[...] = inf
-    cut(E, n, n + 1)[...] = inf
-    d = cut(E, 1, n)
-    np.subtract(cut(w, 1, n), cut(w, 0, n - 1), out=d)
-    np.copyto(d, inf, where=cut(part_ids, 1, n) != cut(part_ids, 0, n - 1))
-    A = np.abs(E)
-    out = np.where(cut(A, 1, n + 1) <= cut(A, 0, n), cut(E, 1, n + 1), cut(E, 0, n))
-    np.copyto(out, np.float32(0.0), where=np.isinf(out))
-    return out
