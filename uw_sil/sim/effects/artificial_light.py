@@ -115,6 +115,31 @@ def _shadow_grid(geom, planes=None) -> dict:
             "sub": g.shape[0] // geom.shape[0]}
 
 
+#: Block size of the shadow test's pruning erosion for large radii (:func:`_nearest_within`).
+PRUNE_BLOCK = 4
+
+
+def _nearest_within(z: np.ndarray, r: int) -> np.ndarray:
+    """(H, W) float32: at most the smallest ``z`` within ``r`` pixels (a square window), a lower bound that the
+    shadow test's pruning can use as well as the exact minimum (it can only keep more points to test). Radii above
+    a few blocks: the minimum over :data:`PRUNE_BLOCK`-pixel blocks, eroded over ``ceil(r / block)`` blocks (which
+    covers every pixel within ``r`` of any pixel of a block), then spread back over each block's pixels; 16x fewer
+    pixels to erode."""
+    h, w = z.shape
+    f = PRUNE_BLOCK
+    if r <= 2 * f:
+        return cv2.erode(z, cv2.getStructuringElement(cv2.MORPH_RECT, (2 * r + 1, 2 * r + 1)),
+                         borderType=cv2.BORDER_CONSTANT, borderValue=1e6)
+    hb, wb = -(-h // f), -(-w // f)
+    pad = np.full((hb * f, wb * f), np.float32(1e6), np.float32)
+    pad[:h, :w] = z
+    blocks = pad.reshape(hb, f, wb, f).min(axis=(1, 3))
+    rb = -(-r // f)
+    blocks = cv2.erode(blocks, cv2.getStructuringElement(cv2.MORPH_RECT, (2 * rb + 1, 2 * rb + 1)),
+                       borderType=cv2.BORDER_CONSTANT, borderValue=1e6)
+    return np.repeat(np.repeat(blocks, f, axis=0), f, axis=1)[:h, :w]
+
+
 def _visibility_on(g: dict, L: np.ndarray, prune: bool = True) -> np.ndarray:
     """The shadow test of the module's docstring on one grid (:func:`_shadow_grid`): (H, W) share of the lamp at
     ``L`` seen from each surface point, 1 where nothing is hit.
@@ -138,9 +163,7 @@ def _visibility_on(g: dict, L: np.ndarray, prune: bool = True) -> np.ndarray:
     r = max(h, w) if gap <= 0.05 else int(math.ceil(max(fx, fy) * lxy * tmax / (zmin * gap))) + 2
     r = min(r, max(h, w))
     zfin = np.where(hit, z, np.float32(1e6)).astype(np.float32)
-    near = cv2.erode(zfin, cv2.getStructuringElement(cv2.MORPH_RECT, (2 * r + 1, 2 * r + 1)),
-                     borderType=cv2.BORDER_CONSTANT, borderValue=1e6)
-    cand = hit & (near < z - np.float32(SHADOW_BIAS)) if prune else hit
+    cand = hit & (_nearest_within(zfin, r) < z - np.float32(SHADOW_BIAS)) if prune else hit
     idx = np.flatnonzero(cand)
     if idx.size == 0:
         return vis
