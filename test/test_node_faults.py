@@ -392,7 +392,17 @@ def _owned_segments(pgid: int) -> set:
             inodes.add(int(f[5].split(":")[2]))
     return {f"/dev/shm/{name[:-3]}" for name in os.listdir("/dev/shm")
             if name.startswith("fastdds_") and name.endswith("_el") and "port" not in name
-            and os.stat(f"/dev/shm/{name}").st_ino in inodes}
+            and _inode(f"/dev/shm/{name}") in inodes}
+
+
+def _inode(path: str):
+    """The file's inode, None if it is gone: other DDS processes on the machine (the suite's other worker) create
+    and remove their segments at any time, also between the directory listing and this look (a flake run failed
+    on exactly that: FileNotFoundError for another participant's lock file)."""
+    try:
+        return os.stat(path).st_ino
+    except FileNotFoundError:
+        return None
 
 
 class Watcher(Node):
