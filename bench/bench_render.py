@@ -6,8 +6,9 @@ Run standalone::
 
 Prints the model load and context creation time, the first render (shader compilation and
 model upload), the median / p90 time per frame over ``--frames`` poses around the panel,
-the split between the two GL passes and numpy post-processing, and the resident memory
-before and after the loop.
+the split between the two GL passes and numpy post-processing, the resident memory
+before and after the loop, and the median of a geometry-only render (``colour=False``).
+Last line: ``render: frame_ms=X geometry_ms=Y fps=Z``.
 """
 from __future__ import annotations
 
@@ -72,6 +73,11 @@ def main(argv=None):
         t0 = time.perf_counter()
         renderer.render(T)
         t_frame.append(time.perf_counter() - t0)
+    t_geo = []
+    for T in poses:
+        t0 = time.perf_counter()
+        renderer.render(T, colour=False)
+        t_geo.append(time.perf_counter() - t0)
     for T in poses[: min(30, len(poses))]:
         renderer.render(T)  # sets the camera pose
         t0 = time.perf_counter()
@@ -101,6 +107,9 @@ def main(argv=None):
           f"(growth over the loop {rss_after - rss_before:+.1f} MiB)")
     print(f"  first frame: {int(first.hit.sum())} px hit, depth {np.nanmin(first.depth):.3f}"
           f"..{np.max(first.depth[first.hit]):.3f} m")
+    print(f"  geometry only (colour=False): {ms(np.median(t_geo)):8.1f} ms median  (what sim_camera renders while "
+          f"nobody takes its images)")
+    print(f"render: frame_ms={ms(med):.1f} geometry_ms={ms(np.median(t_geo)):.1f} fps={1.0 / med:.1f}")
 
 
 if __name__ == "__main__":
