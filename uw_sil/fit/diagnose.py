@@ -852,10 +852,11 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
         # surfaces an accepted geometry effect adds (a seafloor) are not noise: left out of its statistics
         job.exclude = {id(f): added_surface(f, geo) for f in job.fit_f + job.sel_f}
     # side by side in the worker processes, as a round's refits (each judge refits only its own effect)
+    stat_results = {}
     if stat_effects:
         say(f"judging {', '.join(stat_effects)} on the held-out frames' statistics (new in every frame: θ "
             f"cannot rise)")
-    stat_results = _refit_all(workers, stat_effects, job, current, say, "statistics", took) if stat_effects else {}
+        stat_results = _refit_all(workers, stat_effects, job, current, say, "statistics", took)
     for e, r in stat_results.items():
         timing[f"statistics_{e}_s"] = r.extra["refit_s"]
         margin = margin_for(r.sel_pf - current.sel_pf, len(stat_effects), seed=seed)
