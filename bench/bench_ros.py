@@ -6,7 +6,8 @@ plays the camera: it renders a synthetic approach once (noisy frames, poses), th
 ``camera/image_raw`` (best effort), ``camera/camera_info`` and ``panel/pose`` (reliable) with the current
 time as stamp, looping over the frames, for ``--seconds``. It counts the enhanced frames that come back and
 reads the enhancer's ``~/status`` (drops by cause, enhancer latency: from the later of its paired inputs'
-arrival to publication). End to end: pose publication here to the enhanced frame's arrival here.
+arrival to publication). End to end: pose publication here to the enhanced frame's arrival here. ``missing_at``:
+the send indices (first 20) of the frames that did not come back: start-up losses show as small indices.
 
     PYOPENGL_PLATFORM=osmesa .venv/bin/python bench/bench_ros.py [--rates 15 30] [--seconds 30] [--frames 30]
 
@@ -159,7 +160,10 @@ def run_rate(rate: float, seconds: float, frames, camera: CameraModel, fit_yaml:
     s = status[-1] if status else {}
     e2e = np.array([(got[t] - sent[t]) / 1e6 for t in got if t in sent])
     drops = s.get("dropped_queue", 0) + s.get("dropped_unpaired", 0) + s.get("dropped_bad", 0)
+    # which frames did not come back: at start-up, at the end, or spread over the run
+    missing = [i for i, t in enumerate(sent) if t not in got]
     return {"rate": rate, "in": len(sent), "out": sum(1 for t in got if t in sent), "drops": drops,
+            "missing_at": missing[:20],
             "dropped_queue": s.get("dropped_queue"), "dropped_unpaired": s.get("dropped_unpaired"),
             "dropped_bad": s.get("dropped_bad"), "sim_frames": s.get("received", {}).get("depth"),
             "images_received": s.get("received", {}).get("image"),

@@ -272,6 +272,25 @@ def test_camera_change(quad_renderer):
         quad_renderer.camera = "640x480"
 
 
+def _gl_state(r):
+    """pyrender's compiled shader programs and the model's primitives already in the GL context."""
+    prims = [p for m in r._scene.meshes for p in m.primitives]
+    return len(r._offscreen._renderer._program_cache._program_cache), sum(p._in_context() for p in prims), len(prims)
+
+
+def test_a_new_context_is_ready_before_the_first_frame():
+    """The shaders of both passes are compiled and the model uploaded when the context is made (at construction
+    and at a new size), not by the first render(): a live camera's first poses would wait for it."""
+    with Renderer(camera=SMALL) as r:
+        for cam in (SMALL, SMALL.scaled(0.5)):
+            r.camera = cam
+            programs, uploaded, prims = _gl_state(r)
+            assert programs >= 2 and uploaded == prims, (programs, uploaded, prims)
+            r.render(TILTED)
+            r.render(TILTED, colour=False)
+            assert _gl_state(r) == (programs, uploaded, prims)
+
+
 def test_context_key_patch():
     """With a context current, OpenGL.contextdata.getContext returns one stable hashable value."""
     import OpenGL.contextdata

@@ -281,9 +281,11 @@ class Renderer:
     def camera(self) -> CameraModel:
         """The camera model; assign a new :class:`CameraModel` to change intrinsics or size.
 
-        A new size re-creates the OpenGL context (OSMesa buffers have a fixed size) and
-        re-uploads the model on the next frame: about 0.2 s with the shipped panel, no
-        memory kept. New intrinsics at the same size cost nothing.
+        A new size re-creates the OpenGL context (OSMesa buffers have a fixed size), uploads
+        the model and compiles the shaders of both passes at once (one throw-away frame of
+        each: about 0.2 s with the shipped panel, no memory kept), so that the first
+        :meth:`render` after it costs what any other does (a live camera's first poses are not
+        skipped while it waits). New intrinsics at the same size cost nothing.
         """
         return self._camera
 
@@ -300,6 +302,8 @@ class Renderer:
                 self._offscreen.delete()  # OSMesa buffers have a fixed size: new context
                 self._offscreen = None
             self._offscreen = pyrender.OffscreenRenderer(int(camera.width), int(camera.height))
+            self._offscreen.render(self._scene, flags=self._flags_color)
+            self._offscreen.render(self._scene, flags=self._flags_seg, seg_node_map=self._seg_map)
         self._camera = camera
         rn = camera.ray_norm()
         self._ray_norm = rn.astype(np.float32)
