@@ -420,7 +420,7 @@ def _eliminate(job, current, accepted: list, seed: int, say, candidates: list, s
             if known is not None and known[1].theta_fit > reduced.theta_fit:
                 better = (f"elimination: the forward selection's fit of {reduced.name} is better on the fit frames "
                           f"(θ {known[1].theta_fit:.4f} vs {reduced.theta_fit:.4f})")
-                idle = held_neutral(known[1].params["effects"])
+                idle = held_neutral(known[1].params["effects"], job.camera)
                 if idle:
                     say(f"{better} but holds {', '.join(idle)} at its neutral values (a fit of the model without "
                         f"it): the refit is compared")
@@ -480,13 +480,13 @@ def _eliminate(job, current, accepted: list, seed: int, say, candidates: list, s
                               "model_effects": list(current.effects), "held_E": np.asarray(current.ls_sel_E)}
 
 
-def held_neutral(values: dict) -> list:
+def held_neutral(values: dict, camera=None) -> list:
     """The effects of ``values`` (``{effect: its complete parameter values}``) held at their neutral values
-    (:meth:`~uw_sil.fit.judges.base.Judge.neutral`): a model holding them so is the model without them, whatever
-    its name."""
+    (:meth:`~uw_sil.fit.judges.base.Judge.neutral`, on images of ``camera``): a model holding them so is the
+    model without them, whatever its name."""
     from .judges import JUDGES
 
-    return [e for e, v in values.items() if JUDGES[e].neutral(v)]
+    return [e for e, v in values.items() if JUDGES[e].neutral(v, camera)]
 
 
 def _as_refit(model, e: str):
@@ -871,7 +871,7 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
     # ---------------------------------------------------------------- the final model and the verdict
     # an effect the final model holds at its neutral values is the model without it: it is not named (a refit
     # can end where it started)
-    idle = held_neutral(current.values)
+    idle = held_neutral(current.values, job.camera)
     neutral = [a for a in accepted if a["effect"] in idle]
     for a in neutral:
         accepted.remove(a)

@@ -286,8 +286,9 @@ class Judge:
         names = get_effect(self.effect).param_names
         return tuple(self.free) if self.free is not None else tuple(n for n in names if n not in self.fixed)
 
-    def neutral(self, values: dict) -> bool:
-        """Whether these values leave the image as the model without the effect renders it."""
+    def neutral(self, values: dict, camera=None) -> bool:
+        """Whether these values leave the image as the model without the effect renders it (``camera``: the
+        frames' camera, for an effect that can leave an image of that size unchanged away from its defaults)."""
         from ...sim.effects import get_effect
 
         return bool(get_effect(self.effect).is_identity(values))
@@ -503,7 +504,7 @@ def theta_refit(job: Job, current: Current, judge: Judge, starts: Optional[list]
     t_all = job.frame_theta(model, job.fit_f, np.stack([fit.x, x_id, x_mix])).mean(axis=1)
     j = 0 if t_all[0] >= t_all[2] else 2
     t_fit = np.array([t_all[j], t_all[1]])
-    neutral = job.judges[judge.effect].neutral(model.params_of(x_id)["effects"][judge.effect])
+    neutral = job.judges[judge.effect].neutral(model.params_of(x_id)["effects"][judge.effect], job.camera)
     kept_current = bool(neutral and not t_fit[0] >= t_fit[1])
     x = x_id if kept_current else (fit.x if j == 0 else x_mix)
     sel_pf = job.frame_theta(model, job.sel_f, x, seed_offset=50)[0]
