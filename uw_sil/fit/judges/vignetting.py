@@ -9,17 +9,6 @@ import numpy as np
 from .base import Judge
 
 
-def corner_falloff(values: dict, camera) -> float:
-    """The largest relative illumination the effect's falloff gives at the image's four corners (1: at least one
-    corner undimmed)."""
-    from ...sim.effects import get_effect
-
-    eff = get_effect("vignetting")
-    u, v = eff.prepare(SimpleNamespace(shape=(camera.height, camera.width)), camera)
-    V = eff.falloff((u, v), {**eff.defaults(), **values})
-    return float(max(V[0, 0], V[0, -1], V[-1, 0], V[-1, -1]))
-
-
 class VignettingJudge(Judge):
     effect = "vignetting"
     free = ("k1", "k2", "cx", "cy")
@@ -30,19 +19,11 @@ class VignettingJudge(Judge):
         sig, p = super().order(job), job.prox.get(self.effect)
         return sig * (0.5 + min(1.0, p.explained * 2)) if p is not None else sig
 
-    # start without an estimate, and when the estimate gives no falloff: corners at 0.8 of the centre, the mild end
-    # of deep-sea housings (0.3-0.8)
-    default_start = {"k1": -0.2}
-    #: a start must dim the corners at least this much: the falloff is capped at 1 (a lens never brightens), so
-    #: where the polynomial is >= 1 over the whole image the image does not depend on k1, k2, cx, cy at all, and a
-    #: fit started there cannot leave (forward differences and CMA-ES steps alike see no change)
-    MIN_CORNER_LOSS = 0.05
-
     def start(self, job):
         p = job.prox.get(self.effect)
         cam = job.camera
         if p is None or not p.params:
-            return dict(self.default_start)
+            return {"k1": -0.2}
         p = p.params
         # proxy: exp(k1 t^2 + k2 t^4), t = tan of the field angle; effect: 1 + k1 rho^2 + k2 rho^4 with rho the
         # radius over the image half-diagonal: match value at the corner and at half the radius
@@ -51,11 +32,9 @@ class VignettingJudge(Judge):
         corner, mid = math.exp(k1 + k2), math.exp(k1 * 0.25 + k2 * 0.0625)
         K = np.linalg.solve(np.array([[1.0, 1.0], [0.25, 0.0625]]), [corner - 1, mid - 1])
         half_diag = math.hypot(cam.width / 2, cam.height / 2)
-        s = {"k1": float(np.clip(K[0], -1.2, 0.5)), "k2": float(np.clip(K[1], -0.6, 0.6)),
-             "cx": float(np.clip(p.get("cx", 0) * cam.fx / half_diag, -0.2, 0.2)),
-             "cy": float(np.clip(p.get("cy", 0) * cam.fy / half_diag, -0.2, 0.2))}
-        # the proxy's curve is free to brighten the corners (lamps' beams do); a vignetting start must dim them
-        return s if corner_falloff(s, cam) <= 1.0 - self.MIN_CORNER_LOSS else dict(self.default_start)
+        return {"k1": float(np.clip(K[0], -1.2, 0.5)), "k2": float(np.clip(K[1], -0.6, 0.6)),
+                "cx": float(np.clip(p.get("cx", 0) * cam.fx / half_diag, -0.2, 0.2)),
+                "cy": float(np.clip(p.get("cy", 0) * cam.fy / half_diag, -0.2, 0.2))}
 
     def neutral(self, values, camera=None):
         """Also values whose falloff is 1 over the whole image of ``camera``: the polynomial is capped at 1, so
