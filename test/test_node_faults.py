@@ -273,6 +273,15 @@ if "{when}" == "stopped":
     un._stop_signals.append(2)
 half = object.__new__(Task)          # what a KeyboardInterrupt inside Task.__init__ leaves behind
 del half
+if "{what}" == "interrupt":            # the second SIGINT landing in a generator closed by the first one's unwinding
+    def reader():
+        try:
+            yield 1
+        finally:
+            raise KeyboardInterrupt
+    stream = reader()
+    next(stream)
+    del stream
 if "{what}" == "other":
     class Broken:
         def __del__(self):
@@ -287,10 +296,14 @@ print("ended", flush=True)
     ("stopped", "half", None),                                           # the stop's own debris: not printed
     ("running", "half", "no attribute '_exception'"),                    # without a stop: an error, printed
     ("stopped", "other", "a real error in a finalizer"),                 # any other finalizer error: printed
-], ids=["stopped", "no-stop", "other-error"])
-def test_a_future_half_built_by_the_stop_signal_is_not_reported(when, what, printed):
+    ("stopped", "interrupt", None),                                      # our handler's in a finalizer: not
+    ("running", "interrupt", "KeyboardInterrupt"),                       # ... unless no stop signal came
+], ids=["stopped", "no-stop", "other-error", "interrupt-stopped", "interrupt-no-stop"])
+def test_the_stop_signals_debris_in_finalizers_is_not_reported(when, what, printed):
     """Ctrl-C landing inside rclpy's ``Task`` constructor leaves a half-built future whose ``__del__`` fails
-    (seen in ``backward_fit``'s log in a fresh-clone run: a traceback in an otherwise clean stop). After a stop
+    (seen in ``backward_fit``'s log in a fresh-clone run: a traceback in an otherwise clean stop); a second
+    Ctrl-C landing in a generator's ``finally`` while the first one unwinds raises KeyboardInterrupt in a
+    finalizer (``bag_play``, a CI run). After a stop
     signal exactly that error is passed over; before one, or any other, is printed as usual."""
     done = subprocess.run([sys.executable, "-c", HALF_BUILT_FUTURE.format(when=when, what=what)],
                           capture_output=True, text=True, timeout=120)
