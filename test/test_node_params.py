@@ -230,6 +230,23 @@ def test_backward_fit_says_when_no_frames_arrive(ros):
         fit.destroy_node()
 
 
+def test_backward_fit_renders_at_the_size_of_its_camera_info_file(ros, tmp_path):
+    """With ``camera_info_file`` the renderer's context is made (and warmed) at the calibration's size, not at
+    a default 640x480 that the first fit would throw away."""
+    from uw_sil.bags.camera_yaml import CameraCalibration, write_camera_yaml
+    from uw_sil.nodes.backward_fit import BackwardFitNode
+
+    K = np.array([[SMALL.fx, 0, SMALL.cx], [0, SMALL.fy, SMALL.cy], [0, 0, 1.0]])
+    path = write_camera_yaml(tmp_path / "cam.yaml", CameraCalibration(width=SMALL.width, height=SMALL.height, K=K))
+    fit = BackwardFitNode(context=ros, parameter_overrides=[Parameter("auto_start", value=False),
+                                                            Parameter("camera_info_file", value=str(path))])
+    try:
+        cam = fit.renderer.camera
+        assert (cam.width, cam.height, cam.fx) == (SMALL.width, SMALL.height, pytest.approx(SMALL.fx)), cam
+    finally:
+        fit.destroy_node()
+
+
 def test_backward_fit_rejects_bad_start_values(ros):
     from uw_sil.nodes.backward_fit import BackwardFitNode
 

@@ -214,7 +214,8 @@ class BackwardFitNode(Node):
         self.sim_params = AsyncParameterClient(self, self.get_parameter("sim_node").value)
         from ..sim.render import Renderer
 
-        self.renderer = Renderer(self.get_parameter("model_path").value or None)
+        # the context is made (and warmed) at the camera's size when the calibration file gives it
+        self.renderer = Renderer(self.get_parameter("model_path").value or None, camera=self.camera)
         self._lock = threading.Lock()
         self._stopping = threading.Event()   # set by destroy_node: the fit thread ends without touching the node
         self.selector = None
