@@ -112,3 +112,23 @@ def test_a_frame_of_any_size_reduces_to_a_camera_of_its_blocks(factor):
     model = EffectModel([rf], ("artificial_light", "vignetting"), values={"artificial_light": {"power": 1.0}})
     img = model.simulate(0, model.x0([0.4, 0.12, 0.08, 0.1, 0.3, 0.35, 0.05])[None])[0]
     assert img.shape == rf.image.shape and np.isfinite(img).all()
+
+
+def test_a_least_squares_fit_leaves_the_neutral_value_of_a_capped_effect(near_frame):
+    """Vignetting's falloff ``min(1, 1 + k1 r^2 + k2 r^4)`` is flat for k > 0 at k = 0: a forward-difference
+    Jacobian there has zero columns and the least-squares fit never left the neutral values (every refit of
+    vignetting from the current model, the nested start the diagnosis relies on). Stepped the other way where
+    the forward step changes nothing, it recovers the vignetting of frames simulated with it."""
+    from dataclasses import replace
+
+    from uw_sil.fit.diagfit import ls_fit
+
+    rf = reduce_frame(near_frame, 4)
+    base = np.array([0.4, 0.1, 0.08, 0.05, 0.15, 0.2, 0.1])
+    model = EffectModel([rf], ("vignetting",), fog="exp2", seed=0)
+    truth = {"k1": -0.4, "k2": -0.1, "cx": 0.05, "cy": -0.03}
+    image = model.simulate(0, model.x0(base, {"vignetting": truth})[None])[0] * 255.0
+    model = EffectModel([replace(rf, image=image)], ("vignetting",), fog="exp2", seed=0)
+    x = ls_fit(model, model.x0(base, {"vignetting": {}}), stride=1, max_nfev=20)
+    got = model.params_of(x)["effects"]["vignetting"]
+    assert got == pytest.approx(truth, abs=0.01), got

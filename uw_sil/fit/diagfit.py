@@ -488,6 +488,13 @@ def ls_fit(model: "EffectModel", x0, stride: int = 2, max_nfev: int = 12, interr
         h = 2e-3 * np.maximum(1.0, np.abs(x))
         h = np.where(x + h > hi, -h, h)
         F = resids(x[None] + np.diag(h))
+        # a form capped on one side is flat there: vignetting's falloff min(1, 1 + k1 r^2 + k2 r^4) at k = 0
+        # does not change for k > 0, so its forward column is zero and the fit would never leave k = 0; such
+        # parameters are stepped the other way (within the box)
+        flat = ~np.any(F != f0[None], axis=1) & (x - h >= lo) & (x - h <= hi)
+        if flat.any():
+            h[flat] = -h[flat]
+            F[flat] = resids(x[None] + np.diag(h)[flat])
         return ((F - f0[None]) / h[:, None]).T
 
     try:

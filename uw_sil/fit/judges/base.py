@@ -479,9 +479,12 @@ def theta_refit(job: Job, current: Current, judge: Judge, starts: Optional[list]
                                       for a in judge.alt_starts] + par]
         cand += ls_x
         if current.ls_params is not None:
-            # nested: the current model's least-squares optimum with the effect neutral is a candidate too;
-            # the fit with the lowest residual on the fit frames is the candidate's
-            ls_x.append(lmodel.x0(current.ls_params["base"], current.ls_params["effects"]))
+            # nested: the current model's least-squares optimum with the effect neutral is a candidate too, and
+            # so is a least-squares fit from it (the whole model refitted jointly, its effects and this one; also
+            # a θ start); the fit with the lowest residual on the fit frames is the candidate's
+            x_nest = lmodel.x0(current.ls_params["base"], current.ls_params["effects"])
+            ls_x += [x_nest, ls_fit(lmodel, x_nest, stride=1, max_nfev=job.ls_nfev, interrupt=job.interrupt)]
+            cand.append(ls_x[-1])
             E_fit = residual_energy(lmodel, np.stack(ls_x)).mean(axis=1)
             x_best = ls_x[int(np.nanargmin(E_fit))]
             E_sel = residual_energy(lmodel.like(job.reduced(job.sel_f, "ls")), x_best)[0]
