@@ -264,7 +264,7 @@ def test_signals_arriving_all_through_the_clean_up_print_nothing():
         warnings.warn("2000 stops without the hook never reached the race: this run did not test the hook")
 
 
-HALF_BUILT_FUTURE = """
+STOP_DEBRIS = """
 import sys
 import uw_sil.nodes as un
 from rclpy.task import Task
@@ -305,7 +305,7 @@ def test_the_stop_signals_debris_in_finalizers_is_not_reported(when, what, print
     Ctrl-C landing in a generator's ``finally`` while the first one unwinds raises KeyboardInterrupt in a
     finalizer (``bag_play``, a CI run). After a stop
     signal exactly that error is passed over; before one, or any other, is printed as usual."""
-    done = subprocess.run([sys.executable, "-c", HALF_BUILT_FUTURE.format(when=when, what=what)],
+    done = subprocess.run([sys.executable, "-c", STOP_DEBRIS.format(when=when, what=what)],
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 0 and "ended" in done.stdout, done
     if printed is None:

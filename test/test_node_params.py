@@ -236,8 +236,7 @@ def test_backward_fit_renders_at_the_size_of_its_camera_info_file(ros, tmp_path)
     from uw_sil.bags.camera_yaml import CameraCalibration, write_camera_yaml
     from uw_sil.nodes.backward_fit import BackwardFitNode
 
-    K = np.array([[SMALL.fx, 0, SMALL.cx], [0, SMALL.fy, SMALL.cy], [0, 0, 1.0]])
-    path = write_camera_yaml(tmp_path / "cam.yaml", CameraCalibration(width=SMALL.width, height=SMALL.height, K=K))
+    path = write_camera_yaml(tmp_path / "cam.yaml", CameraCalibration.from_camera_model(SMALL))
     fit = BackwardFitNode(context=ros, parameter_overrides=[Parameter("auto_start", value=False),
                                                             Parameter("camera_info_file", value=str(path))])
     try:
