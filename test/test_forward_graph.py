@@ -33,7 +33,8 @@ def test_sil_graph_is_backward_plus_forward():
     assert list(specs) == ["sim_camera", "backward_fit", "enhancer", "bag_play"]
     assert specs["backward_fit"].required and specs["backward_fit"].parameters["output_yaml"] == "/d/fit.yaml"
     assert not specs["enhancer"].required and specs["enhancer"].parameters["b_from_frame"] is True
-    assert specs["bag_play"].parameters["wait_for_nodes"] == ["backward_fit", "enhancer"]
+    assert specs["bag_play"].parameters["wait_for_nodes"] == ["backward_fit", "enhancer",
+                                                             "sim_camera:/camera/camera_info"]
     backward = {s.name: s for s in graph.backward_graph(bag="/d/t.mcap", output_yaml="/d/fit.yaml", frames=2,
                                                         optimizer="cmaes")}
     assert specs["backward_fit"].parameters == backward["backward_fit"].parameters

@@ -24,7 +24,8 @@ def test_backward_graph_with_a_bag_ends_with_the_fit():
     assert play.parameters["rate"] == 2.0 and play.parameters["bag"] == "/data/trial.mcap"
     # bag_play waits for the fitting node's subscriptions to the bag's topics (not any subscriber's)
     assert set(play.parameters["wait_for_topics"]) <= set(graph.BACKWARD_INPUTS)
-    assert play.parameters["wait_for_nodes"] == ["backward_fit"]
+    # ... and for sim_camera on the camera_info (the size of its renders; a short bag's are gone once played)
+    assert play.parameters["wait_for_nodes"] == ["backward_fit", "sim_camera:/camera/camera_info"]
     # a bag with fewer usable frames than asked for still ends in a fit
     assert fit.parameters["idle_timeout"] == graph.IDLE_TIMEOUT > 0
     # the player publishes reliably and a replay must lose no frame: the fit reads reliably too

@@ -568,6 +568,7 @@ def test_start_or_ctrl_c_stops_a_running_diagnosis(lamp_bag, tmp_path):
     specs = {s.name: s for s in graph.backward_graph(bag=str(lamp_bag), diagnose=True, keep_running=True,
                                                      output_yaml=str(out_yaml), output_json=str(out_json),
                                                      **budget)}
+    specs["bag_play"].parameters["wait_for_nodes"] = ["backward_fit"]     # no sim_camera here: not waited for
     domain = domain_id()
     env = ros_env(domain)
     watch = Watcher(domain)

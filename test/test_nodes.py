@@ -214,6 +214,38 @@ class TimedPublisher:
         return getattr(self._pub, name)
 
 
+def test_bag_play_waits_for_a_node_on_one_topic_only(ros, trial):
+    """``wait_for_nodes`` entries ``NODE:TOPIC`` wait for that node on that topic alone (the graphs wait for
+    sim_camera on the camera_info, which it reads, not on the camera, which it does not); plain entries wait
+    on every topic of ``wait_for_topics``, as before; such a topic the bag does not play is an error."""
+    from uw_sil.nodes.bag_play import BagPlayNode
+
+    def player_for(nodes):
+        return BagPlayNode(context=ros, parameter_overrides=[
+            Parameter("bag", value=str(trial)), Parameter("wait_for_topics", value=["/camera/image_raw"]),
+            Parameter("wait_for_nodes", value=nodes), Parameter("wait_timeout", value=1.0)])
+
+    player = player_for(["fitter", "probe:/camera/camera_info"])
+    fitter, probe = Node("fitter", context=ros), Node("probe", context=ros)
+    ex = SingleThreadedExecutor(context=ros)
+    for n in (player, fitter, probe):
+        ex.add_node(n)
+    try:
+        fitter.create_subscription(Image, "/camera/image_raw", lambda m: None, qos_profile_sensor_data)
+        assert not player.wait_for_readers(ex)                # the fitter alone: probe has not subscribed
+        probe.create_subscription(CameraInfo, "/camera/camera_info", lambda m: None, qos_profile_sensor_data)
+        assert player.wait_for_readers(ex)                    # probe on camera_info only, the fitter on the camera
+        missing = player_for(["probe:/sonar/image"])
+        ex.add_node(missing)
+        with pytest.raises(ValueError, match="/sonar/image is not played"):
+            missing.wait_for_readers(ex)
+        missing.destroy_node()
+    finally:
+        ex.shutdown()
+        for n in (player, fitter, probe):
+            n.destroy_node()
+
+
 def test_bag_play_replays_with_recorded_timing(ros, trial):
     from uw_sil.nodes.bag_play import BagPlayNode
 

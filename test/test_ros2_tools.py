@@ -498,7 +498,8 @@ def test_ros2_tools_on_the_running_graph(ws, trial, tmp_path):
             assert {f"/{n}" for n in NODES} <= set(nodes.stdout.split()), nodes.stdout
             dumps = ws.run(domain, *[("param", "dump", *CLI, f"/{n}") for n in NODES])
             dumped = {n: yaml.safe_load(d.stdout)[f"/{n}"]["ros__parameters"] for n, d in zip(NODES, dumps)}
-            assert dumped["bag_play"]["topics"] == [] and dumped["bag_play"]["wait_for_nodes"] == ["backward_fit"]
+            assert dumped["bag_play"]["topics"] == [] and dumped["bag_play"]["wait_for_nodes"] == [
+                "backward_fit", "sim_camera:/camera/camera_info"]
 
             own = {n: sorted(set(p) - {"use_sim_time", "start_type_description_service"}) for n, p in dumped.items()}
             *described, frames, optimizer, start = ws.run(

@@ -277,11 +277,18 @@ def start_node(module: str) -> int:
         raise ValueError(f"unknown node {module!r} (one of {', '.join(NODES)})")
     _handle_stop_signals()
     _report_crashes()
+    _pass_over_stop_debris()
     try:
         node_module = importlib.import_module(f"{__name__}.{module}")
     except BaseException:
         if not _stop_signals:          # a real import error: show it
             raise
+        _ignore_signals()
+        return 0
+    if _stop_signals:
+        # the signal came, but its KeyboardInterrupt did not: raised inside a finalizer or a weakref callback
+        # of the import machinery (``_get_module_lock.<locals>.cb``), it is reported, not raised, and the import
+        # went on. The node then started and ran until killed (a loaded test run: "still running after 5 s").
         _ignore_signals()
         return 0
     return node_module.main()
@@ -327,8 +334,12 @@ def _pass_over_stop_debris():
     And a ``KeyboardInterrupt`` raised by our handler inside a finalizer: the second SIGINT landing while the
     first one's unwinding closes a generator (``bag_play``'s bag reader, whose ``finally`` tallies what was
     read; a CI run's graph test failed on its "Exception ignored in: <generator object _raw_stream>"). The
-    node is already stopping; CPython cannot raise it there anyway."""
+    node is already stopping; CPython cannot raise it there anyway. Also the first signal's, landing in a
+    weakref callback of the import machinery while a node still imports: the node stops all the same
+    (:func:`start_node` checks the signals noted)."""
     default = sys.unraisablehook
+    if getattr(default, "uw_sil_stop_debris", False):      # installed already (start_node, then run_node)
+        return
     ignored = {f"Signal {int(s)} ignored due to race condition" for s in (signal.SIGINT, signal.SIGTERM)}
 
     def hook(unraisable):
@@ -343,6 +354,7 @@ def _pass_over_stop_debris():
             return
         default(unraisable)
 
+    hook.uw_sil_stop_debris = True
     sys.unraisablehook = hook
 
 
@@ -464,6 +476,10 @@ def _run_node(make_node, spin, args, name, user_errors, exit_process: bool = Tru
     node = None
     code = 0
     try:
+        if _stop_signals:
+            # a stop signal before rclpy's handlers were in whose KeyboardInterrupt a finalizer swallowed
+            # (:func:`start_node`): stop now, as rclpy would have on it
+            raise KeyboardInterrupt
         logger.debug(f"{FASTDDS_PROFILE_VAR}={profile}")
         if stale[0]:
             logger.info(f"removed {stale[0]} Fast DDS shared-memory segment(s) ({stale[1] / 2**20:.0f} MiB) "

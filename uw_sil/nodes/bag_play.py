@@ -14,7 +14,10 @@ Parameters (read at start)
     ``topics`` (string array, empty = all). ``start_paused`` (false).
     ``wait_for_topics`` (string array): start only once each of these has a subscriber -- one of each
     node named in ``wait_for_nodes`` (string array) when given, else any (``wait_timeout`` s, default
-    30; then exit with an error). ``delay`` (0.0 s): extra wait before the first message (gives the
+    30; then exit with an error); an entry ``NODE:TOPIC`` of ``wait_for_nodes`` waits for that node on that
+    topic only (e.g. ``sim_camera:/camera/camera_info``: a camera_info published before sim_camera listens
+    is lost to it, and after a short bag none comes again).
+    ``delay`` (0.0 s): extra wait before the first message (gives the
     readers time to match the publishers too).
     ``clock_hz`` (0.0 = off): publish the bag time on ``/clock`` at this rate.
 Services
@@ -186,11 +189,19 @@ class BagPlayNode(Node):
     # ------------------------------------------------------------------ playing
     def wait_for_readers(self, executor) -> bool:
         g = self._param
-        nodes = set(g("wait_for_nodes") or [])
-        for topic in g("wait_for_topics") or []:
+        everywhere, only = set(), {}
+        for entry in g("wait_for_nodes") or []:
+            node, on_one, topic = entry.partition(":")
+            if on_one:
+                only.setdefault(topic, set()).add(node)
+            else:
+                everywhere.add(node)
+        topics = list(g("wait_for_topics") or [])
+        for topic in topics + [t for t in only if t not in topics]:
             pub = self.publishers_.get(topic)
             if pub is None:
                 raise ValueError(f"wait_for_topics: {topic} is not played")
+            nodes = (everywhere if topic in topics else set()) | only.get(topic, set())
 
             def subscribed():
                 if not nodes:

@@ -161,7 +161,7 @@ def backward_graph(sim_params: Optional[str] = None, bag: Optional[str] = None, 
     if bag:
         waits = [IMAGE_TOPICS[image_transport]] + ([BACKWARD_INPUTS[2]] if marker_node is None else [])
         readers = ["backward_fit"] + (["panel_pose"] if marker_node is not None else [])
-        nodes.append(_bag_play(bag, rate, loop, waits, readers, start_paused))
+        nodes.append(_bag_play(bag, rate, loop, waits, readers + _camera_info_reader(camera_info_file), start_paused))
     return nodes
 
 
@@ -184,6 +184,14 @@ def _enhancer(method: str, b_from_frame: bool, idle_exit: bool, image_transport:
     if idle_exit:
         params["idle_timeout"] = idle_timeout
     return NodeSpec("enhancer", "enhancer", parameters=params, required=idle_exit)
+
+
+def _camera_info_reader(camera_info_file: str) -> list:
+    """bag_play's wait for sim_camera on the camera_info topic (a ``wait_for_nodes`` entry of one topic), unless a
+    ``camera_info_file`` gives sim_camera its camera. sim_camera takes the camera size from the first camera_info
+    it hears; started late on a loaded machine (its imports: 3-10 s) it heard none of a short bag's and rendered
+    the diagnosed model at its default 640x480 for a 160x120 recording (a loaded test run)."""
+    return [] if camera_info_file else [f"sim_camera:{BACKWARD_INPUTS[1]}"]
 
 
 def _bag_play(bag, rate, loop, wait_for_topics, wait_for_nodes=(), start_paused=False) -> NodeSpec:
@@ -267,6 +275,7 @@ def sil_graph(sim_params: Optional[str] = None, bag: Optional[str] = None, outpu
         nodes[0].parameters.update(REPLAY_SIM_CAMERA)
         _replayed(None, nodes[0], nodes[-1])
         readers = ["backward_fit", "enhancer"] + (["panel_pose"] if pose_source == "markers" else [])
+        readers += _camera_info_reader(camera_info_file)
         nodes.append(_bag_play(bag, rate, loop, [IMAGE_TOPICS[image_transport]], readers, start_paused))
     return nodes
 
