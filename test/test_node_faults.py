@@ -135,15 +135,24 @@ def test_a_node_stopped_while_it_imports_ends_cleanly(sig):
     """When one node fails, ``ros2 launch`` stops the others, and one may still be importing (rclpy, scipy,
     the renderer: about 1 s here, more under load). A SIGINT inside that import printed a KeyboardInterrupt
     traceback and the node died with -2 (seen in CI); it must end like a node stopped while running."""
-    p = Proc([sys.executable, "-c", IMPORTING_NODE], ros_env(domain_id()), name="backward_fit")
+    _stopped_before_it_started(IMPORTING_NODE, "importing", sig, STOP,
+                               "the node had started: the signal did not come during the import")
+
+
+def _stopped_before_it_started(script: str, ready: str, sig, within: float, started: str):
+    """Run ``script`` (a backward_fit executable), wait for its line ``ready``, send ``sig`` (None: the script
+    signals itself), and check that it ended within ``within`` s with exit code 0, printing nothing, the node never
+    started (``started``: the message if it did)."""
+    p = Proc([sys.executable, "-c", script], ros_env(domain_id()), name="backward_fit")
     try:
         with logs_on_failure(p):
-            p.wait_for("importing", timeout=START)
-            p.signal(sig)
-            assert p.wait_group(STOP) < STOP
+            p.wait_for(ready, timeout=START)
+            if sig is not None:
+                p.signal(sig)
+            assert p.wait_group(within) < within
             assert p.popen.returncode == 0
             assert_clean_output(p.text, "backward_fit")
-            assert "[backward_fit]" not in p.text, "the node had started: the signal did not come during the import"
+            assert "[backward_fit]" not in p.text, started
     finally:
         p.stop()
 
@@ -181,16 +190,8 @@ def test_a_stop_signal_swallowed_during_the_import_still_stops_the_node(sig):
     test run, ``_get_module_lock.<locals>.cb``) is reported by the interpreter, not raised: the import went on,
     the node started and ran until killed. The signal was noted, so the node must not start: exit 0, nothing
     printed, no ``[backward_fit]`` log line."""
-    p = Proc([sys.executable, "-c", SWALLOWED_STOP_NODE.format(sig=sig)], ros_env(domain_id()), name="backward_fit")
-    try:
-        with logs_on_failure(p):
-            p.wait_for("signalled inside a weakref callback", timeout=START)
-            assert p.wait_group(START) < START
-            assert p.popen.returncode == 0
-            assert_clean_output(p.text, "backward_fit")
-            assert "[backward_fit]" not in p.text, "the node started after the stop signal"
-    finally:
-        p.stop()
+    _stopped_before_it_started(SWALLOWED_STOP_NODE.format(sig=sig), "signalled inside a weakref callback", None,
+                               START, "the node started after the stop signal")
 
 
 CTRL_C_LOOP = """
