@@ -385,8 +385,10 @@ def test_a_nested_model_never_ends_below_the_model_it_contains(bags, monkeypatch
     # (in this process: the planted optimizer is not in worker processes)
     doc = diagnose_bag(bags["control"], k=6, effects_allowed=["vignetting"], processes=1).to_json()
     cand = next(c for c in doc["candidates"] if c["effect"] == "vignetting")
-    base_fit_theta = doc["selection"][0]["theta_train"]
-    assert cand["kept_current_optimum"]
+    step = doc["selection"][0]
+    # (the model it contains: the current one as the round's refits started from it, before the round's reference)
+    base_fit_theta = step["reference"]["theta_train_before"] if "reference" in step else step["theta_train"]
+    assert cand["kept_current_optimum"] and cand["neutral"]     # (the effect neutral: it cannot be accepted)
     assert cand["theta_train"] >= base_fit_theta - 1e-9
     assert cand["fit"]["theta_fit_optimizer"] < base_fit_theta - 0.01      # the planted point was worse
     assert doc["verdict"] == []
@@ -804,10 +806,13 @@ def test_a_pose_correction_is_judged_on_the_pose_alone(bags, monkeypatch):
     so only the pose may move in its least-squares fit. Planted: a base fit whose attenuations are 20 % off
     the least-squares optimum (θ's optimum and the residual's differ; on an own 640x480 control the refit of
     the photometric parameters alone took 6 % of the held-out residual and a 0.3 mm "pose error" was accepted
-    on it). On the effect-free control the pose must not be accepted."""
+    on it). On the effect-free control the pose must not be accepted. (Without the round's reference refit,
+    which would recover the attenuations before the comparison: here the pose plug-in is tested alone.)"""
     import uw_sil.fit.diagnose as dg
+    import uw_sil.fit.judges.base as jb
 
     real = dg.fit_model
+    monkeypatch.setattr(jb, "reference_refit", lambda job, current: None)
 
     def off(model, rframes, noise, x0, **kw):
         fit = real(model, rframes, noise, x0, **kw)
@@ -889,6 +894,55 @@ def test_an_effect_the_final_model_holds_neutral_is_not_named(bags, monkeypatch)
     assert not [k for k in doc["final"]["params"] if k.startswith("camera_response.")]
     assert doc["selection"][-1]["chosen"] == "-camera_response"
     assert any("camera_response not named" in m for m in said), said
+
+
+def test_a_candidate_held_at_its_neutral_values_is_not_accepted():
+    """An effect at its neutral values is the model without it: whatever held-out θ its refit gained went to
+    the current model's own parameters (measured: vignetting "accepted" in round 2 of a physical dive with
+    +0.0104 at k1 = k2 = cx = cy = 0). The refit marks such a fit (``extra["neutral"]``, and ``"ls_neutral"``
+    for its least-squares fit, which the residual criterion judges): neither criterion accepts it."""
+    from uw_sil.fit.judges import JUDGES, Current, Refit
+
+    current = Current(effects=(), values={}, base=np.zeros(7), theta_fit=0.9, sel_pf=np.full(4, 0.80))
+    judge = JUDGES["camera_response"]           # smooth and photometric: both criteria apply
+    assert judge.residual_evidence
+
+    def refit(**extra):
+        return Refit(effect=judge.effect, effects=(judge.effect,), x=np.zeros(1), params={}, theta_fit=0.95,
+                     sel_pf=current.sel_pf + [0.04, 0.05, 0.06, 0.05], extra=extra)
+
+    assert judge.accept(refit(), current, 0.01)[:2] == (True, pytest.approx(5.0))
+    assert not judge.accept(refit(neutral=True), current, 0.01)[0]
+    residual = (10.0, 5.0)                      # held-out residual before, after
+    assert judge.accept(refit(neutral=True), current, 0.01, residual)[::2] == (True, "residual")
+    assert not judge.accept(refit(neutral=True, ls_neutral=True), current, 0.01, residual)[0]
+
+
+def test_candidates_are_compared_with_the_current_model_refitted_with_their_budget(bags, monkeypatch):
+    """A candidate's refit also goes on optimizing the current model's own parameters; the round's reference is
+    the current model refitted with the same budget and starts (:func:`uw_sil.fit.judges.base.reference_refit`),
+    adopted where it scores higher on the fit frames. Planted: a base fit that ends with its attenuation 40 % off.
+    The round's reference must recover θ on the fit frames, and the control must still get no verdict."""
+    import uw_sil.fit.diagnose as dg
+    from uw_sil.fit.diagfit import ModelFit
+
+    real_fit = dg.fit_model
+
+    def off(model, rframes, noise, x0, **kw):
+        fit = real_fit(model, rframes, noise, x0, **kw)
+        x = np.array(fit.x, float)
+        x[:3] *= 1.4
+        return ModelFit(model, x, fit.theta_train, fit.theta_start, fit.n_evals, 1, "planted", 0.0, 0)
+
+    monkeypatch.setattr(dg, "fit_model", off)
+    said = []
+    doc = dg.diagnose_bag(bags["control"], k=6, effects_allowed=["vignetting", "camera_response"], max_effects=1,
+                          processes=1, progress=said.append).to_json()
+    ref = doc["selection"][0]["reference"]
+    assert ref["adopted"] and ref["theta_train"] > ref["theta_train_before"] + 0.003, ref
+    assert doc["selection"][0]["theta_train"] == ref["theta_train"]
+    assert any("refitted as the candidates are" in m for m in said), said
+    assert doc["verdict"] == [], doc["verdict"]
 
 
 def test_doubts_lower_confidence():

@@ -18,7 +18,10 @@ camera info and panel poses, and the scene model; never a ground-truth sidecar):
    where the mismatch is, for the reader.
 4. **greedy forward selection on held-out frames**: in the first round *every* effect with a plug-in
    (:mod:`uw_sil.fit.judges`) is refitted jointly with the current model, with the same optimizer budget as
-   the base fit; the effect that raises held-out θ most beyond its noise margin joins the model (the margin:
+   the base fit, and so is the current model itself (:func:`uw_sil.fit.judges.base.reference_refit`: where that
+   scores higher on the fit frames it is what the round's candidates are compared with, since their refits go on
+   optimizing its parameters too; a fit holding its effect neutral is never accepted); the effect that raises
+   held-out θ most beyond its noise margin joins the model (the margin:
    a bootstrap over held-out frames of the per-frame gains, with the normal quantile corrected for the
    number of candidates of the round, and at least :data:`uw_sil.fit.judges.base.MIN_MARGIN`); the model
    is refitted jointly with it, and the next round tries the :data:`LATER_CANDIDATES` remaining effects with
@@ -554,39 +557,73 @@ def _refit_pinned(cheap, current, oks: list, n_cands: int, candidates: list, rnd
     return out, jobs
 
 
+#: The item of a round's refits that is the current model itself (:func:`uw_sil.fit.judges.base.reference_refit`).
+REFERENCE = ""
+
+
 def _refit_one(shared, effect):
-    """One candidate's refit (:meth:`uw_sil.fit.judges.base.Judge.refit`), in a worker process or here; its
-    time in ``extra["refit_s"]``."""
+    """One candidate's refit (:meth:`uw_sil.fit.judges.base.Judge.refit`), or the current model's own
+    (``effect`` :data:`REFERENCE`), in a worker process or here; its time in ``extra["refit_s"]``."""
     from .judges import JUDGES
+    from .judges.base import reference_refit
 
     job, current, parents = shared
     t = time.perf_counter()
-    r = JUDGES[effect].refit(job, current, parent=parents.get(effect))
-    r.extra["refit_s"] = time.perf_counter() - t
+    if effect == REFERENCE:
+        r = reference_refit(job, current)
+    else:
+        r = JUDGES[effect].refit(job, current, parent=parents.get(effect))
+    if r is not None:
+        r.extra["refit_s"] = time.perf_counter() - t
     return r
 
 
 def _refit_all(workers, cands: list, job, current, say, label: str, took: dict,
-               parents: Optional[dict] = None) -> dict:
-    """Every candidate's refit of a round, side by side in the diagnosis's worker processes (the results of
-    one after the other, up to rounding: :func:`diagnose_frames`); ``{effect: Refit}`` in the order of
-    ``cands``. The costliest refits first (their time in an earlier round, ``took``, updated here; else the
-    plug-in's :attr:`~uw_sil.fit.judges.base.Judge.cost`). ``parents``: each candidate's refit of the previous
-    round's model, a start of its refit here (:func:`~uw_sil.fit.judges.base.theta_refit`)."""
+               parents: Optional[dict] = None, reference: bool = True) -> dict:
+    """Every candidate's refit of a round and (``reference``) the current model's own with the same budget (the
+    candidates' reference, key :data:`REFERENCE`; None where there is none), side by side in the diagnosis's worker
+    processes (the results of one after the other, up to rounding: :func:`diagnose_frames`); ``{effect: Refit}``
+    in the order of ``cands``, the reference last. The costliest refits first (their time in an earlier round,
+    ``took``, updated here; else the plug-in's :attr:`~uw_sil.fit.judges.base.Judge.cost`). ``parents``: each
+    candidate's refit of the previous round's model, a start of its refit here
+    (:func:`~uw_sil.fit.judges.base.theta_refit`)."""
     from .judges import JUDGES
 
-    n = min(workers.processes, len(cands))
-    say(f"{label}: refitting {current.name} + each of {', '.join(cands)} "
+    items = list(cands) + ([REFERENCE] if reference else [])
+    n = min(workers.processes, len(items))
+    say(f"{label}: refitting {current.name} + each of {', '.join(cands)}{f', and {current.name} itself' * reference} "
         f"({f'{n} processes side by side' if n > 1 else 'one after the other'})")
 
     def done(i, r):
-        took[cands[i]] = r.extra["refit_s"]
-        say(f"{label}: {current.name} + {cands[i]} refitted ({r.extra['refit_s']:.1f} s)")
+        took[items[i]] = r.extra["refit_s"] if r is not None else 0.0
+        what = f"{current.name} + {items[i]}" if items[i] != REFERENCE else current.name
+        say(f"{label}: {what} refitted ({took[items[i]]:.1f} s)")
 
     parents = {e: p for e, p in (parents or {}).items() if e in cands}
-    res = workers.map(_refit_one, cands, shared=(job, current, parents), interrupt=job.interrupt, done=done,
-                      cost=[took.get(e, JUDGES[e].cost) for e in cands])
-    return dict(zip(cands, res))
+    res = workers.map(_refit_one, items, shared=(job, current, parents), interrupt=job.interrupt, done=done,
+                      cost=[took.get(e, JUDGES[e].cost if e != REFERENCE else 1.0) for e in items])
+    return dict(zip(items, res))
+
+
+def _adopt_reference(current, ref, say, label: str):
+    """The current model refitted with a candidate's budget (:func:`uw_sil.fit.judges.base.reference_refit`)
+    replaces it where it scores higher on the fit frames (the held-out frames do not choose it): the round's
+    candidates are compared with that. The held-out residual's reference (the least-squares fit) stays.
+    Returns ``(current, record)``, the record for the round's step (None: no reference refit)."""
+    from .judges.base import with_effect
+
+    if ref is None:
+        return current, None
+    adopted = bool(ref.theta_fit > current.theta_fit)
+    rec = {"theta_train_before": current.theta_fit, "theta_train": ref.theta_fit,
+           "theta_heldout_before": float(np.mean(current.sel_pf)), "theta_heldout": float(np.mean(ref.sel_pf)),
+           "adopted": adopted}
+    if adopted:
+        say(f"{label}: {current.name} refitted as the candidates are: θ on the fit frames {current.theta_fit:.4f} -> "
+            f"{ref.theta_fit:.4f} (held-out {rec['theta_heldout_before']:.4f} -> {rec['theta_heldout']:.4f}); "
+            f"the candidates are compared with it")
+        current = replace(with_effect(current, ref), ls_params=current.ls_params, ls_sel_E=current.ls_sel_E)
+    return current, rec
 
 
 def _keep_better(earlier: dict, current, r):
@@ -701,6 +738,7 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
     base_sel_pf = current.sel_pf.copy()
     base_sel_E = current.ls_sel_E.copy()
     base_params = {"base": {k: float(v) for k, v in zip(RGB_NAMES, current.base)}, "effects": {}}
+    base_x, base_theta_train = base_fit.x, float(base_fit.theta_train)
 
     # ---------------------------------------------------------------- greedy forward selection on held-out frames
     allowed = [e for e in JUDGES if effects_allowed is None or e in effects_allowed]
@@ -723,6 +761,12 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
             t0 = time.perf_counter()
             cheap = replace(job, max_iter=min(job.max_iter, CHEAP_ITER))
             results = _refit_all(workers, cands, cheap, current, say, f"round {rnd}", took, parents)
+            current, reference = _adopt_reference(current, results.pop(REFERENCE, None), say, f"round {rnd}")
+            if rnd == 1 and reference and reference["adopted"]:
+                # the base model refitted: that is its fit (what a verdict of none leaves, what the report shows)
+                base_x, base_theta_train, base_sel_pf = current.x, current.theta_fit, current.sel_pf.copy()
+                base_params = {"base": {k: float(v) for k, v in zip(RGB_NAMES, current.base)}, "effects": {}}
+                fits["base"].update(x=base_x, held_pf=base_sel_pf)
             parents = {e: r.params for e, r in results.items() if r.params}
             for e in cands:
                 if not JUDGES[e].absorb:
@@ -738,7 +782,8 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
                 flat = JUDGES[e].flat_bounds(job, r.model, r.x, margin) if ok else ()
                 doubts = JUDGES[e].plausibility(r.params["effects"].get(e, {}), flat) if ok else []
                 rows.append({**_candidate_row(rnd, current, e, r, margin, ok, strength, crit, imp, rgain),
-                             "doubts": doubts, **({"flat_bounds": list(flat)} if flat else {})})
+                             "doubts": doubts, **({"flat_bounds": list(flat)} if flat else {}),
+                             **({"neutral": True} if r.extra.get("neutral") else {})})
                 rank = _rank(not doubts, crit, strength, r, current)
                 if ok:
                     oks.append((e, r, strength, margin, crit, rank))
@@ -772,7 +817,8 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
             steps.append({"round": rnd, "model": current.name, "theta_heldout": float(current.sel_pf.mean()),
                           "residual_heldout": float(np.mean(current.ls_sel_E)),
                           "theta_train": current.theta_fit, "tried": [row["effect"] for row in rows],
-                          "chosen": best[0] if best else None, "time_s": time.perf_counter() - t0})
+                          "chosen": best[0] if best else None, "time_s": time.perf_counter() - t0,
+                          **({"reference": reference} if reference else {})})
             timing[f"round_{rnd}_s"] = time.perf_counter() - t0
             if best is None:
                 say(f"round {rnd}: no effect raised held-out θ or lowered the held-out residual beyond its margin; "
@@ -864,7 +910,7 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
     if stat_effects:
         say(f"judging {', '.join(stat_effects)} on the held-out frames' statistics (new in every frame: θ "
             f"cannot rise)")
-        stat_results = _refit_all(workers, stat_effects, job, current, say, "statistics", took)
+        stat_results = _refit_all(workers, stat_effects, job, current, say, "statistics", took, reference=False)
     for e, r in stat_results.items():
         timing[f"statistics_{e}_s"] = r.extra["refit_s"]
         margin = margin_for(r.sel_pf - current.sel_pf, len(stat_effects), seed=seed)
@@ -929,7 +975,7 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
         t0 = time.perf_counter()
         rep_final = [corrected_frame(f, current.absorbed) for f in report_f] if current.absorbed else list(report_f)
         job.R_hi.update({id(f): reduce_frame(f, f_hi) for f in {id(f): f for f in report_f + rep_final}.values()})
-        report = {"base": job.frame_theta(empty, report_f, base_fit.x[None], REPORT_SEED_OFFSET)[0],
+        report = {"base": job.frame_theta(empty, report_f, base_x[None], REPORT_SEED_OFFSET)[0],
                   "final": job.frame_theta(current.model, rep_final, np.asarray(current.x, float)[None],
                                            REPORT_SEED_OFFSET)[0]}
         say(f"report frames {[f.index for f in report_f]} (no fit or choice saw them): θ "
@@ -940,7 +986,7 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
     final_key = current.name if current.effects else None
     diag = Diagnosis(
         verdict=verdict, candidates=candidates,
-        base={"theta_train": float(base_fit.theta_train), "theta_heldout": float(base_sel_pf.mean()),
+        base={"theta_train": base_theta_train, "theta_heldout": float(base_sel_pf.mean()),
               "theta_heldout_simulated": float(as_sim["base"].mean()),
               "theta_report": _mean_or_none(report["base"]),
               "residual_heldout": float(np.mean(base_sel_E)),
@@ -960,7 +1006,7 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
                 for f in sorted(frames + report_f, key=lambda f: f.index)],
         timing=timing, final_params=final_params, not_judged=not_judged, source=source, selection=steps,
         figures={"rframes": rall, "sims": sims, "res": res, "sigs": sigs, "prox": prox, "fits": fits,
-                 "base_x": base_fit.x, "fog": fog, "held": [R_hi[id(f)] for f in held_f],
+                 "base_x": base_x, "fog": fog, "held": [R_hi[id(f)] for f in held_f],
                  "base_held_pf": base_sel_pf, "final_key": final_key})
     return diag
 
