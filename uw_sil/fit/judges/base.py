@@ -439,6 +439,26 @@ def _sigma0(judges) -> np.ndarray:
     return np.concatenate([BASE_SIGMA0 * 1.5] + [np.full(len(j.free_params()), j.sigma) for j in judges])
 
 
+def _joint_model(job: Job, names: tuple, values: dict) -> tuple:
+    """``(judges, resolution, reduced fit frames, EffectModel)`` of the effects ``names`` jointly, their free
+    parameters those of their plug-ins, fitted at high resolution if any of them needs it."""
+    js = [job.judges[e] for e in names]
+    res = "high" if any(j.res == "high" for j in js) else "low"
+    rfit = job.reduced(job.fit_f, res)
+    model = EffectModel(rfit, names, values={j.effect: {**j.fixed, **values.get(j.effect, {})} for j in js},
+                        free={j.effect: j.free_params() for j in js}, fog=job.fog, seed=job.seed)
+    return js, res, rfit, model
+
+
+def _cmaes_from_best(job: Job, js: list, rfit: list, model: EffectModel, cand: list):
+    """CMA-ES with the job's budget on the fit frames from the start in ``cand`` that scores highest by θ."""
+    noise = noise_sigmas(rfit)
+    with FrameObjective(rfit, model, noise, seed=job.seed) as of:
+        th = of(np.stack(cand))
+    return fit_model(model, rfit, noise, cand[int(np.nanargmax(th))], sigma0=_sigma0(js), seed=job.seed,
+                     max_iter=job.max_iter, popsize=job.popsize, patience=job.patience, interrupt=job.interrupt)
+
+
 def theta_refit(job: Job, current: Current, judge: Judge, starts: Optional[list] = None,
                 x_starts: Optional[list] = None, least_squares: bool = True, parent: Optional[dict] = None) -> Refit:
     """Refit the current model plus ``judge.effect`` jointly on the fit frames (θ, CMA-ES with the common
@@ -459,12 +479,7 @@ def theta_refit(job: Job, current: Current, judge: Judge, starts: Optional[list]
     from ...sim.effects import EFFECT_ORDER
 
     names = tuple(e for e in EFFECT_ORDER if e in current.effects or e == judge.effect)
-    js = [job.judges[e] for e in names]
-    res = "high" if any(j.res == "high" for j in js) else "low"
-    rfit = job.reduced(job.fit_f, res)
-    free = {j.effect: j.free_params() for j in js}
-    values = {j.effect: {**j.fixed, **current.values.get(j.effect, {})} for j in js}
-    model = EffectModel(rfit, names, values=values, free=free, fog=job.fog, seed=job.seed)
+    js, res, rfit, model = _joint_model(job, names, current.values)
     cur = {e: current.values[e] for e in current.effects}
     x_id = model.x0(current.base, cur)
     s0 = judge.start(job)
@@ -498,12 +513,7 @@ def theta_refit(job: Job, current: Current, judge: Judge, starts: Optional[list]
             ls_extra = {"ls_x": x_best, "ls_sel_E": E_sel, "ls_fit_E": float(np.nanmin(E_fit)),
                         "ls_params": {"base": np.array(list(p["base"].values())), "effects": p["effects"]},
                         "ls_neutral": judge.neutral(p["effects"][judge.effect], job.camera)}
-    noise = noise_sigmas(rfit)
-    with FrameObjective(rfit, model, noise, seed=job.seed) as of:
-        th = of(np.stack(cand))
-    x0 = cand[int(np.nanargmax(th))]
-    fit = fit_model(model, rfit, noise, x0, sigma0=_sigma0(js), seed=job.seed, max_iter=job.max_iter,
-                    popsize=job.popsize, patience=job.patience, interrupt=job.interrupt)
+    fit = _cmaes_from_best(job, js, rfit, model, cand)
     # the nesting invariant, judged where models are compared (fit frames, high resolution)
     # (only where the effect has neutral values: a seafloor, once listed, is there)
     # A fit at the low resolution also moves the base parameters to the low-resolution optimum, which can
@@ -542,23 +552,14 @@ def reference_refit(job: Job, current: Current) -> Optional[Refit]:
     if current.x is None:
         return None
     names = tuple(current.effects)
-    js = [job.judges[e] for e in names]
-    res = "high" if any(j.res == "high" for j in js) else "low"
-    rfit = job.reduced(job.fit_f, res)
-    free = {j.effect: j.free_params() for j in js}
-    model = EffectModel(rfit, names, values={j.effect: {**j.fixed, **current.values[j.effect]} for j in js},
-                        free=free, fog=job.fog, seed=job.seed)
+    js, res, rfit, model = _joint_model(job, names, current.values)
     x_cur = model.x0(current.base, {e: current.values[e] for e in names})
     cand = [x_cur]
     if current.ls_params is not None:
         lmodel = model.like(job.reduced(job.fit_f, "ls"))
         x_nest = lmodel.x0(current.ls_params["base"], current.ls_params["effects"])
         cand += [x_nest, ls_fit(lmodel, x_nest, stride=1, max_nfev=job.ls_nfev, interrupt=job.interrupt)]
-    noise = noise_sigmas(rfit)
-    with FrameObjective(rfit, model, noise, seed=job.seed) as of:
-        th = of(np.stack(cand))
-    fit = fit_model(model, rfit, noise, cand[int(np.nanargmax(th))], sigma0=_sigma0(js), seed=job.seed,
-                    max_iter=job.max_iter, popsize=job.popsize, patience=job.patience, interrupt=job.interrupt)
+    fit = _cmaes_from_best(job, js, rfit, model, cand)
     # judged where models are compared (fit frames, high resolution); a low-resolution fit moves the base
     # parameters to the low-resolution optimum: the fitted effects with the current base are tried too
     x_mix = fit.x.copy()
