@@ -14,9 +14,12 @@ from uw_sil.bags.synth import load_truth, synthesize_trial
 
 SMALL = CameraModel.from_fov(320, 240, 70.0)
 TRUTH = UnderwaterParams(a=(0.40, 0.12, 0.08), b=(0.07, 0.33, 0.43), rho_f=0.10)
-# Recovery by the CMA-ES fit below, achieved (seeds 1, 2, 3) plus a margin: attenuation within 2.3 %,
-# background within 0.001, fog within 1.0 % (the criteria: 5 %, 0.01, 10 %).
-RTOL_A, ATOL_B, RTOL_FOG = 0.035, 0.002, 0.02
+# Recovery by the CMA-ES fit below, achieved (seeds 1, 2, 3) plus a margin: attenuation within 4.2 %,
+# background within 0.0003, fog within 2.0 % (the criteria: 5 %, 0.01, 10 %). Since the camera noise
+# is estimated before 8-bit rounding (uw_sil.sim.noise; the water's 1.31 / 2.09 / 2.32 grey levels read as
+# 1.05 / 2.10 / 2.10 before) the background is 3-5x closer and the attenuation as close on average (15 fits,
+# trials 3-5 x seeds 1-5: mean error 2.0 % both, largest 4.2 % against 3.5 %).
+RTOL_A, ATOL_B, RTOL_FOG = 0.05, 0.001, 0.03
 
 
 @pytest.fixture(scope="module")

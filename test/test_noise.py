@@ -28,6 +28,19 @@ def test_estimate_uses_only_masked_pixels():
         estimate_noise_sigma(img, np.zeros((60, 80), bool))
 
 
+@pytest.mark.parametrize("sigma", [0.3, 0.6, 0.8, 1.0, 1.3, 2.0])
+def test_estimate_of_rounded_noise_is_the_noise_before_rounding(sigma):
+    """An 8-bit recording's noise of about a grey level: the median of integer differences is an integer, so
+    the plain MAD read 0, 1.05 or 2.1 grey levels (0.6 -> 1.05, 1.3 -> 1.05, 0.3 -> 0). The estimate is the noise
+    a simulation must add before it rounds, with edges and a slope in the frame."""
+    rng = np.random.default_rng(int(sigma * 10))
+    img = np.linspace(3.0, 30.0, 320)[None, :, None] + np.zeros((240, 1, 3))
+    img[:, 200:] += 60.0                                     # an edge
+    noisy = np.clip(np.rint(img + rng.normal(0, sigma, img.shape)), 0, 255).astype(np.uint8)
+    np.testing.assert_allclose(estimate_noise_sigma(noisy), sigma, rtol=0.05)
+    np.testing.assert_allclose(estimate_noise_sigma(noisy.astype(np.float32)), sigma, rtol=0.05)
+
+
 def test_quantized_noise_free_image_has_zero_sigma():
     img = np.full((50, 50, 3), 77, np.uint8)
     np.testing.assert_array_equal(estimate_noise_sigma(img), 0.0)
