@@ -676,6 +676,51 @@ def test_a_refit_starts_from_its_effects_refit_of_the_smaller_model(tmp_path, mo
     assert with_parent.theta_fit > without.theta_fit + 0.01, (with_parent.theta_fit, without.theta_fit)
 
 
+def test_a_refit_starts_from_its_effects_refit_of_the_smaller_model_itself(tmp_path, monkeypatch):
+    """The candidate's refit of the previous round's model (``parent``) is nested in the joint model as it
+    stands: the effects accepted since at their neutral values. An effect accepted first can have taken the
+    candidate's light (a camera response with gains of 1.5 brightening the panel where the lamps do); on top of
+    the parent its current values count that light twice. Planted on a lamps + forward-scatter trial: the current
+    model is base + camera response with its gains at 1.5, the parent is the lamps' refit of the base model at the
+    truth, and the optimizer stays at its best start: the refit must start at the parent itself (camera response
+    at its neutral values), well above the parent with the camera response's current values."""
+    import copy
+
+    import uw_sil.fit.judges.base as jb
+    from uw_sil.fit.diagfit import ModelFit
+    from uw_sil.fit.judges import JUDGES, Current
+    from uw_sil.sim.effects import get_effect
+    from uw_sil.sim.params import RGB_NAMES
+
+    truth, fit_f, sel_f, job = _lamps_fs_trial(tmp_path)
+    A, C = "artificial_light", "camera_response"
+    base = np.array([truth["params"][k] for k in RGB_NAMES], float)
+    cr = {**get_effect(C).defaults(), "gain_r": 1.5, "gain_g": 1.5, "gain_b": 1.5}
+    _, _, _, model = jb._joint_model(job, (C,), {C: cr})
+    x = model.x0(base, {C: cr})
+    cur = Current(effects=(C,), values={C: cr}, base=base, theta_fit=float(job.frame_theta(model, fit_f, x).mean()),
+                  sel_pf=job.frame_theta(model, sel_f, x, seed_offset=50)[0], x=x, model=model)
+    lamps = dict(truth["effect_params"][A])
+    parent = {"base": dict(zip(RGB_NAMES, map(float, base))), "effects": {A: lamps}}
+
+    def stays(model, rframes, noise, x0, **kw):           # the optimizer stays at the best start
+        return ModelFit(model, np.asarray(x0, float), 0.0, 0.0, 0, 0, "planted", 0.0, 0)
+
+    monkeypatch.setattr(jb, "fit_model", stays)
+    judge = copy.copy(JUDGES[A])
+    judge.least_squares = False
+    r = jb.theta_refit(job, cur, judge, parent=parent)
+    assert get_effect(C).is_identity(r.params["effects"][C]), r.params["effects"][C]
+    box = {q.name: q for q in get_effect(A).params}
+    for name, v in lamps.items():
+        if name in judge.free_params():
+            assert r.params["effects"][A][name] == pytest.approx(float(np.clip(v, box[name].lo, box[name].hi)),
+                                                                 abs=1e-9)
+    twice = r.model.x0(base, {C: cr, A: lamps})            # the parent with the camera response's current values
+    t_twice = float(job.frame_theta(r.model, fit_f, twice).mean())
+    assert r.theta_fit > t_twice + 0.01, (r.theta_fit, t_twice)
+
+
 def test_a_plausible_explanation_is_chosen_before_a_stretched_one(bags, monkeypatch):
     """Among the candidates a round accepts, one whose fitted values sit on their bounds or outside deep-sea
     ranges (a doubt) ranks after every plausible one, whatever its strength: plant a doubt on vignetting (the true

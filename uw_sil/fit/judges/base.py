@@ -439,6 +439,16 @@ def _sigma0(judges) -> np.ndarray:
     return np.concatenate([BASE_SIGMA0 * 1.5] + [np.full(len(j.free_params()), j.sigma) for j in judges])
 
 
+def _neutral_values(effect: str) -> Optional[dict]:
+    """Values of ``effect`` that leave the image as the model without it renders it (its defaults where they
+    do; None for an effect that has none: a seafloor, once listed, is there)."""
+    from ...sim.effects import get_effect
+
+    fx = get_effect(effect)
+    v = fx.defaults()
+    return v if fx.is_identity(v) else None
+
+
 def _joint_model(job: Job, names: tuple, values: dict) -> tuple:
     """``(judges, resolution, reduced fit frames, EffectModel)`` of the effects ``names`` jointly, their free
     parameters those of their plug-ins, fitted at high resolution if any of them needs it."""
@@ -470,12 +480,17 @@ def theta_refit(job: Job, current: Current, judge: Judge, starts: Optional[list]
     no least-squares starts (nor fit) of the plug-in's own.
 
     ``parent``: the ``params`` of this effect's refit of a smaller model (the previous round's, before the
-    effect accepted there): the model is nested in two ways, the current model with this effect neutral and that
-    refit with the newly accepted effects at their current values, and starts from both (as a θ start and a
-    least-squares start). Two effects that each explain much of the same residual alone (lamps aimed down and a
+    effect accepted there): the model is nested in three ways, the current model with this effect neutral, that
+    refit with the newly accepted effects at their current values, and that refit itself (the newly accepted
+    effects at their neutral values, where they have them), and starts from all three (the first two also as
+    least-squares starts). Two effects that each explain much of the same residual alone (lamps aimed down and a
     lit seafloor below the panel) otherwise hide each other: whichever is accepted first stretches the base
     model (attenuation taking the lamps' falloff, a veil taking the floor), and the other's refit from that
-    stretched optimum stays near it."""
+    stretched optimum stays near it. With the first effect at its current values on top of the parent the
+    brightening is counted twice (a camera response with gains 1.3-1.6 taking the lamps' light, then the lamps
+    added at full power); from the parent itself it starts where the lamps alone were fitted. (On nine physically
+    lit dives that start never scored highest: the selections were the same with it. As a least-squares start
+    too it cost 10-20 % of a diagnosis's time for that, so it is a θ start only.)"""
     from ...sim.effects import EFFECT_ORDER
 
     names = tuple(e for e in EFFECT_ORDER if e in current.effects or e == judge.effect)
@@ -489,9 +504,14 @@ def theta_refit(job: Job, current: Current, judge: Judge, starts: Optional[list]
     par = []
     if parent is not None and judge.effect in parent.get("effects", {}):
         par_base = np.array([parent["base"][k] for k in RGB_NAMES], float)
-        par_values = {**cur, **{e: v for e, v in parent["effects"].items() if e in names}}
-        par = [model.x0(par_base, par_values)]
+        par_effects = {e: v for e, v in parent["effects"].items() if e in names}
+        par = [model.x0(par_base, {**cur, **par_effects})]
         cand += par
+        # that refit itself is nested too (a θ start): the effects accepted since at their neutral values
+        since = {e: _neutral_values(e) for e in cur if e not in par_effects}
+        if any(v is not None for v in since.values()):
+            cand.append(model.x0(par_base, {**cur, **{e: v for e, v in since.items() if v is not None},
+                                            **par_effects}))
     ls_extra = {}
     if judge.least_squares and least_squares and not x_starts:
         lmodel = model.like(job.reduced(job.fit_f, "ls"))
