@@ -56,12 +56,13 @@ def estimate_noise_sigma(image, mask: Optional[np.ndarray] = None, min_pixels: i
     if ok.sum() < min_pixels:
         raise ValueError(f"only {int(ok.sum())} pixel pairs to estimate noise from (need {min_pixels})")
     dv = d[ok]                                               # (P, C)
-    a = np.abs(dv - np.median(dv, axis=0))
+    centre = np.median(dv, axis=0)
     if not rounded:
-        return _MAD_TO_SIGMA * np.median(a, axis=0).astype(np.float64) / np.sqrt(2.0)
+        return _MAD_TO_SIGMA * np.median(np.abs(dv - centre), axis=0).astype(np.float64) / np.sqrt(2.0)
+    a = np.abs(dv - np.rint(centre)).astype(np.int64)       # (a median of integers can end in .5)
     out = np.empty(a.shape[1])
     for c in range(a.shape[1]):
-        counts = np.bincount(np.rint(a[:, c]).astype(np.int64))
+        counts = np.bincount(a[:, c])
         share = np.cumsum(counts) / a.shape[0]
         k = int(np.searchsorted(share, 0.5))                 # first k with P(|d| <= k) >= 1/2
         out[c] = _sigma_of_rounded_share(k, float(share[k]))
