@@ -91,6 +91,32 @@ def wait_future(executor, future, timeout: float = EVENT_TIMEOUT, what: str = "s
     return future.result()
 
 
+def call_until_answered(executor, client, request, what: str, timeout: float = EVENT_TIMEOUT, every: float = 5.0,
+                        detail: Optional[Callable[[], str]] = None) -> tuple:
+    """Call the service of ``client`` and spin until it answers; while no answer has come ``every`` seconds after
+    the last call, call again. Returns ``(response, calls)``: the first answer to any of the calls. Only for
+    services that take a repeat (idempotent, or saying so in their answer).
+
+    Why: Fast DDS drops an answer when the server has not yet matched the client's reply reader, although the
+    client already sees the server (``service_is_ready``). In a loaded flake run bag_play logged "failed to send
+    response (timeout): client will not receive response", had resumed and played the whole bag, and the test
+    waited its 30 s for the answer (rmw_fastrtps issue 842)."""
+    deadline = time.monotonic() + timeout
+    futures = []
+    while True:
+        futures.append(client.call_async(request))
+        retry_at = time.monotonic() + every
+        spin_until(executor, lambda: any(f.done() for f in futures) or time.monotonic() > min(retry_at, deadline),
+                   timeout=timeout + every, what=what, detail=detail)
+        answered = next((f for f in futures if f.done()), None)
+        if answered is not None:
+            return answered.result(), len(futures)
+        if time.monotonic() > deadline:
+            extra = detail() if detail is not None else ""
+            raise AssertionError(f"timed out after {timeout:g} s waiting for {what} ({len(futures)} calls, none "
+                                 f"answered)" + (f"\n{extra}" if extra else ""))
+
+
 def ros_env(domain: int, base: Optional[dict] = None, **extra) -> dict:
     """Environment of a node process: its own domain, loopback discovery, headless OpenGL, no profile
     chosen by the caller (the nodes choose theirs)."""

@@ -69,3 +69,46 @@ def test_a_node_that_does_not_stop_in_time_shows_its_stacks():
         assert p.popen.poll() is None, "SIGUSR1 ended the process: the handler was not registered"
     finally:
         p.stop(timeout=5)
+
+
+class _Future:
+    def __init__(self, answer=None):
+        self.answer = answer
+
+    def done(self):
+        return self.answer is not None
+
+    def result(self):
+        return self.answer
+
+
+class _LosesFirstAnswers:
+    """A service client whose first ``lost`` calls are never answered (Fast DDS dropped the answers) and whose
+    later calls are answered at once with the call's number."""
+
+    def __init__(self, lost: int):
+        self.lost, self.calls = lost, 0
+
+    def call_async(self, request):
+        self.calls += 1
+        return _Future(None if self.calls <= self.lost else f"answer to call {self.calls}")
+
+
+class _Executor:
+    def spin_once(self, timeout_sec=0.0):
+        pass
+
+
+def test_a_service_answer_lost_to_discovery_is_asked_for_again():
+    """A service's answer dropped before the server matched the client (rmw_fastrtps issue 842) must not turn
+    into a timeout: the call is repeated until one is answered; a service that never answers still fails, naming
+    it and the number of calls."""
+    from rosproc import call_until_answered
+
+    client = _LosesFirstAnswers(lost=2)
+    answer, calls = call_until_answered(_Executor(), client, None, "the answer", timeout=5.0, every=0.05)
+    assert (answer, calls, client.calls) == ("answer to call 3", 3, 3)
+    assert call_until_answered(_Executor(), _LosesFirstAnswers(0), None, "the answer", every=0.05) == \
+        ("answer to call 1", 1)
+    with pytest.raises(AssertionError, match=r"timed out after 0.3 s waiting for the answer \(\d+ calls, none"):
+        call_until_answered(_Executor(), _LosesFirstAnswers(10 ** 6), None, "the answer", timeout=0.3, every=0.05)
