@@ -628,6 +628,34 @@ def test_the_polish_refits_one_effect_at_a_time_and_never_loses_theta(tmp_path):
     assert np.allclose(out.sel_pf, job.frame_theta(model, sel_f, out.x, seed_offset=50)[0])
 
 
+def _lamp_judge_whose_optimizer_stays(monkeypatch):
+    """The lamps' plug-in without least-squares starts, its optimizer planted to stay at the best start (a
+    refit then shows which start it began from)."""
+    import copy
+
+    import uw_sil.fit.judges.base as jb
+    from uw_sil.fit.diagfit import ModelFit
+    from uw_sil.fit.judges import JUDGES
+
+    def stays(model, rframes, noise, x0, **kw):
+        return ModelFit(model, np.asarray(x0, float), 0.0, 0.0, 0, 0, "planted", 0.0, 0)
+
+    monkeypatch.setattr(jb, "fit_model", stays)
+    judge = copy.copy(JUDGES["artificial_light"])
+    judge.least_squares = False
+    return judge
+
+
+def _assert_free_lamp_values(judge, fitted: dict, lamps: dict):
+    """The free lamp parameters of ``fitted`` are ``lamps`` (clipped to their box)."""
+    from uw_sil.sim.effects import get_effect
+
+    box = {q.name: q for q in get_effect("artificial_light").params}
+    for name, v in lamps.items():
+        if name in judge.free_params():
+            assert fitted[name] == pytest.approx(float(np.clip(v, box[name].lo, box[name].hi)), abs=1e-9), name
+
+
 def test_a_refit_starts_from_its_effects_refit_of_the_smaller_model(tmp_path, monkeypatch):
     """Two effects that each explain much of the same residual hide each other in a greedy selection: the one
     accepted first stretches the model, and the other's refit from that optimum stays near it. So a refit also
@@ -636,12 +664,9 @@ def test_a_refit_starts_from_its_effects_refit_of_the_smaller_model(tmp_path, mo
     forward scatter with its base parameters moved away from the truth, the parent is the lamps' refit of the
     base model at the truth, and the optimizer stays at its start: the refit with the parent must start there
     (its lamps and base are the parent's, θ on the fit frames well above the refit without it)."""
-    import copy
-
     import uw_sil.fit.judges.base as jb
-    from uw_sil.fit.diagfit import EffectModel, ModelFit
+    from uw_sil.fit.diagfit import EffectModel
     from uw_sil.fit.judges import JUDGES, Current
-    from uw_sil.sim.effects import get_effect
     from uw_sil.sim.params import RGB_NAMES
 
     truth, fit_f, sel_f, job = _lamps_fs_trial(tmp_path)
@@ -657,21 +682,12 @@ def test_a_refit_starts_from_its_effects_refit_of_the_smaller_model(tmp_path, mo
                   theta_fit=float(job.frame_theta(model, fit_f, x).mean()),
                   sel_pf=job.frame_theta(model, sel_f, x, seed_offset=50)[0], x=x, model=model)
     parent = {"base": dict(zip(RGB_NAMES, map(float, base))), "effects": {A: dict(truth["effect_params"][A])}}
-
-    def stays(model, rframes, noise, x0, **kw):           # the optimizer stays at the best start
-        return ModelFit(model, np.asarray(x0, float), 0.0, 0.0, 0, 0, "planted", 0.0, 0)
-
-    monkeypatch.setattr(jb, "fit_model", stays)
-    judge = copy.copy(JUDGES[A])
-    judge.least_squares = False
+    judge = _lamp_judge_whose_optimizer_stays(monkeypatch)
     with_parent = jb.theta_refit(job, cur, judge, parent=parent)
     without = jb.theta_refit(job, cur, judge)
     p = with_parent.params
     assert np.allclose([p["base"][k] for k in RGB_NAMES], base, atol=1e-9)
-    box = {q.name: q for q in get_effect(A).params}
-    for name, v in truth["effect_params"][A].items():
-        if name in judge.free_params():
-            assert p["effects"][A][name] == pytest.approx(float(np.clip(v, box[name].lo, box[name].hi)), abs=1e-9)
+    _assert_free_lamp_values(judge, p["effects"][A], truth["effect_params"][A])
     assert p["effects"][F] == pytest.approx(fs)
     assert with_parent.theta_fit > without.theta_fit + 0.01, (with_parent.theta_fit, without.theta_fit)
 
@@ -684,11 +700,8 @@ def test_a_refit_starts_from_its_effects_refit_of_the_smaller_model_itself(tmp_p
     model is base + camera response with its gains at 1.5, the parent is the lamps' refit of the base model at the
     truth, and the optimizer stays at its best start: the refit must start at the parent itself (camera response
     at its neutral values), well above the parent with the camera response's current values."""
-    import copy
-
     import uw_sil.fit.judges.base as jb
-    from uw_sil.fit.diagfit import ModelFit
-    from uw_sil.fit.judges import JUDGES, Current
+    from uw_sil.fit.judges import Current
     from uw_sil.sim.effects import get_effect
     from uw_sil.sim.params import RGB_NAMES
 
@@ -702,20 +715,10 @@ def test_a_refit_starts_from_its_effects_refit_of_the_smaller_model_itself(tmp_p
                   sel_pf=job.frame_theta(model, sel_f, x, seed_offset=50)[0], x=x, model=model)
     lamps = dict(truth["effect_params"][A])
     parent = {"base": dict(zip(RGB_NAMES, map(float, base))), "effects": {A: lamps}}
-
-    def stays(model, rframes, noise, x0, **kw):           # the optimizer stays at the best start
-        return ModelFit(model, np.asarray(x0, float), 0.0, 0.0, 0, 0, "planted", 0.0, 0)
-
-    monkeypatch.setattr(jb, "fit_model", stays)
-    judge = copy.copy(JUDGES[A])
-    judge.least_squares = False
+    judge = _lamp_judge_whose_optimizer_stays(monkeypatch)
     r = jb.theta_refit(job, cur, judge, parent=parent)
     assert get_effect(C).is_identity(r.params["effects"][C]), r.params["effects"][C]
-    box = {q.name: q for q in get_effect(A).params}
-    for name, v in lamps.items():
-        if name in judge.free_params():
-            assert r.params["effects"][A][name] == pytest.approx(float(np.clip(v, box[name].lo, box[name].hi)),
-                                                                 abs=1e-9)
+    _assert_free_lamp_values(judge, r.params["effects"][A], lamps)
     twice = r.model.x0(base, {C: cr, A: lamps})            # the parent with the camera response's current values
     t_twice = float(job.frame_theta(r.model, fit_f, twice).mean())
     assert r.theta_fit > t_twice + 0.01, (r.theta_fit, t_twice)
