@@ -508,10 +508,9 @@ def theta_refit(job: Job, current: Current, judge: Judge, starts: Optional[list]
         par = [model.x0(par_base, {**cur, **par_effects})]
         cand += par
         # that refit itself is nested too (a θ start): the effects accepted since at their neutral values
-        since = {e: _neutral_values(e) for e in cur if e not in par_effects}
-        if any(v is not None for v in since.values()):
-            cand.append(model.x0(par_base, {**cur, **{e: v for e, v in since.items() if v is not None},
-                                            **par_effects}))
+        since = {e: v for e in cur if e not in par_effects and (v := _neutral_values(e)) is not None}
+        if since:
+            cand.append(model.x0(par_base, {**cur, **since, **par_effects}))
     ls_extra = {}
     if judge.least_squares and least_squares and not x_starts:
         lmodel = model.like(job.reduced(job.fit_f, "ls"))
