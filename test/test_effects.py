@@ -1,6 +1,7 @@
 """Effects of the extended underwater model: registry, parameters, presets, and each effect's signature."""
 import math
 import os
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -508,6 +509,28 @@ def test_camera_response_is_a_function_of_intensity(frames, renderer):
     g = np.array([v["gain_r"], v["gain_g"], v["gain_b"]])
     expect = v["black"] + (1 - v["black"]) * np.clip(base * g, 0, 1) ** (1 / v["gamma"])
     np.testing.assert_allclose(img, expect, atol=2e-6)
+
+
+@pytest.mark.parametrize("p,toe,offset,slope", [(0.45, 0.018, 0.099, 4.5),             # ITU-R BT.709 OETF
+                                                (1 / 2.4, 0.0031308, 0.055, 12.92)])     # IEC 61966-2-1 sRGB
+def test_camera_response_toe_is_the_standards_linear_segment(p, toe, offset, slope):
+    # the standards' published offset and slope follow from the break and the exponent alone (value and
+    # slope continuous; sRGB's published 12.92 is 1.6 % off its own slope-continuous 12.71), and the tone
+    # curve is theirs on either side of the break
+    cr = EFFECTS["camera_response"]
+    values = {**cr.defaults(), "gamma": 1 / p, "toe": toe}
+    _, _, o, s = cr.curve(values)
+    assert o == pytest.approx(offset, abs=0.001) and s == pytest.approx(slope, rel=0.02)
+    x = np.linspace(0, 1, 20001, dtype=np.float32)
+    terms = SimpleNamespace(I=np.stack([x, x, x]).copy())
+    cr.apply(terms, values, None)
+    standard = np.where(x < toe, slope * x, (1 + offset) * x.astype(float) ** p - offset)
+    assert np.abs(terms.I[1] - standard).max() < 0.002                 # half a grey level of 8 bits
+    assert (np.diff(terms.I[1]) >= 0).all()                            # monotone through the break
+    np.testing.assert_allclose(cr.invert(terms.I, None, values)[1], x, atol=2e-6)
+    plain = SimpleNamespace(I=np.stack([x, x, x]).copy())
+    cr.apply(plain, {**values, "toe": 0.0}, None)                     # the pure power law differs in the dark
+    assert np.abs(plain.I[1] - standard)[x < 0.1].max() > 0.02
 
 
 def test_backscatter_coefficient_changes_objects_not_water(frames, renderer):

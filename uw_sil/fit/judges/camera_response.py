@@ -6,7 +6,7 @@ from .base import Judge
 
 class CameraResponseJudge(Judge):
     effect = "camera_response"
-    free = ("gamma", "gain_r", "gain_g", "gain_b", "black")
+    free = ("gamma", "gain_r", "gain_g", "gain_b", "black", "toe")
     res = "low"
     cost = 4.0
     residual_evidence = True
@@ -15,9 +15,10 @@ class CameraResponseJudge(Judge):
         return self.proxy_share(job)
 
     def start(self, job):
-        return {"gamma": 1.1, "black": 0.01}
+        return {"gamma": 1.1, "black": 0.01, "toe": 0.01}
 
     def explain(self, e, gain, sig):
-        return (f"the camera maps light to grey levels differently: tone curve gamma {e.get('gamma', 1):.2f}, "
+        return (f"the camera maps light to grey levels differently: tone curve gamma {e.get('gamma', 1):.2f} "
+                f"(linear below {e.get('toe', 0):.3f} of full scale), "
                 f"white-balance gains r/g/b {e.get('gain_r', 1):.2f}/{e.get('gain_g', 1):.2f}/"
                 f"{e.get('gain_b', 1):.2f}, black level {255 * e.get('black', 0):.0f} DN; {gain}")
