@@ -86,6 +86,51 @@ def test_json_follows_the_schema(diagnoses):
         validate_diagnosis_json(broken)
 
 
+def test_undecided_effects_beat_a_margin_and_are_not_in_the_final_model():
+    """What the held-out frames showed evidence for but the final model's effects explain as well: listed with
+    how it ended (fell below its margin beside a later effect, or dropped by the elimination), never an effect
+    of the final model, never a refit that ended at its neutral values; strongest evidence first."""
+    from uw_sil.fit.diagnose import undecided_effects, validate_diagnosis_json
+
+    def row(rnd, e, model, ok, strength=0.0, d=0.0, margin=0.003, **kw):
+        return {"round": rnd, "effect": e, "model": model, "accepted": ok, "strength": strength,
+                "delta_heldout": d, "margin": margin, "criterion": "theta", **kw}
+
+    cands = [row(1, "vignetting", "base", True, 1.07, 0.0061, 0.0057),
+             row(1, "artificial_light", "base", True, 3.3, 0.0098),
+             row(1, "forward_scatter", "base", True, 2.0, 0.006, neutral=True),      # ended neutral
+             row(1, "marine_snow", "base", False),
+             row(2, "vignetting", "base + artificial_light", False, 0.03, 0.0001),
+             row(2, "camera_response", "base + artificial_light", True, 1.6, 0.0177, 0.0111,
+                 criterion="residual", heldout_residual={"improvement": 0.30, "margin": 0.26}),
+             row("elimination", "artificial_light", "base + camera_response", False, 0.61, 0.0041, 0.0067,
+                 elimination=True, dropped=True)]
+    out = undecided_effects(cands, ["camera_response"])
+    assert [u["effect"] for u in out] == ["artificial_light", "vignetting"], out
+    lamps, vig = out
+    assert lamps["round"] == 1 and lamps["strength"] == 3.3 and lamps["last"]["round"] == "elimination"
+    assert "dropped by the backward elimination" in lamps["explanation"]
+    assert "+0.0041, margin 0.0067" in lamps["explanation"]
+    assert "fell below its margin" in vig["explanation"] and "base + artificial_light" in vig["explanation"]
+    assert "+0.0061, margin 0.0057" in vig["explanation"]
+    # chosen over in its round and never refitted again; joined, and held neutral by the final model
+    only = undecided_effects(cands[:2], ["artificial_light"])
+    assert [u["effect"] for u in only] == ["vignetting"] and "not refitted" in only[0]["explanation"]
+    idle = undecided_effects(cands[:2], [], held_neutral_at_end=["artificial_light"])
+    assert [u["effect"] for u in idle] == ["artificial_light", "vignetting"]
+    assert "holds it at its neutral values" in idle[0]["explanation"]
+    assert undecided_effects([row(1, "pose_error", "base", False)], []) == []
+    # the schema: an undecided effect is not one the verdict names
+    doc = {"schema_version": 1, "verdict": [{"effect": "camera_response", "confidence": 0.6, "explanation": "",
+                                             "params": {}}],
+           "candidates": [], "base": {"theta_train": 0.9, "theta_heldout": 0.9, "params": {}},
+           "final": {"theta_heldout": 0.91}, "mismatch": {"regions": []}, "undecided": out}
+    validate_diagnosis_json(doc)
+    doc["undecided"] = out + [{"effect": "camera_response", "explanation": ""}]
+    with pytest.raises(ValueError, match="named in the verdict"):
+        validate_diagnosis_json(doc)
+
+
 def test_params_yaml_and_report(diagnoses):
     import yaml
 
@@ -466,6 +511,10 @@ def test_backward_elimination_also_tests_the_last_effect_and_drops_the_weakest(b
     assert [(c["effect"], c["accepted"]) for c in elim] == [("vignetting", True), ("artificial_light", False)], elim
     assert [bool(c.get("dropped")) for c in elim] == [False, True]
     assert any(line.endswith(" dropped") and "artificial_light" in line for line in diag.summary_lines())
+    # it beat its margin when it joined: the frames hold evidence the final model explains as well, and say so
+    assert [u["effect"] for u in doc["undecided"]] == ["artificial_light"], doc["undecided"]
+    assert "dropped by the backward elimination" in doc["undecided"][0]["explanation"]
+    assert any(line.startswith("undecided") and "artificial_light" in line for line in diag.summary_lines())
     assert "-artificial_light" in chosen
     assert [v["effect"] for v in doc["verdict"]] == ["vignetting"]
     assert not [k for k in doc["final"]["params"] if k.startswith("artificial_light.")]

@@ -102,6 +102,12 @@ def test_statuses_say_what_the_diagnosis_found():
     doc["base"]["theta_heldout_simulated"], doc["final"]["theta_heldout_simulated"] = 0.61, 0.83
     values = diagnostic_statuses(doc)[0]["values"]
     assert values["theta_heldout_simulated_base"] == "0.61" and values["theta_heldout_simulated_final"] == "0.83"
+    doc = _doc()
+    doc["undecided"] = [{"effect": "vignetting", "round": 1, "delta_heldout": 0.04, "margin": 0.03,
+                         "explanation": "vignetting: beat its margin in round 1 (...); then dropped (...)"}]
+    und = diagnostic_statuses(doc)[2]
+    assert und["level"] == OK and und["message"].startswith("undecided, not named: vignetting: beat its margin")
+    assert und["values"] == {"delta_heldout": "0.04", "margin": "0.03", "round": "1"}
     none = diagnostic_statuses(_doc(verdict=False))
     assert [s["level"] for s in none] == [OK, OK, OK] and none[0]["message"].startswith("none")
     (err,) = failure_statuses("only 1 usable frame(s)")

@@ -58,6 +58,8 @@ JSON schema (``schema_version`` 1)::
                                                     # theta_report: θ on the report frames (null: none)
                                                     # theta_heldout_simulated: theta_as_simulated()
      "mismatch":   {"regions": [{"kind", "name", "pixels", "rms", "mean", "rms_rgb", "share"}, ...]},
+     "undecided":  [{"effect", "round", "model", "criterion", "strength", "delta_heldout", "margin", "last",
+                     "explanation"}, ...],          # beat a margin, not in the final model: undecided_effects()
      ... extra keys: "noise", "signatures", "frames", "timing", "not_judged", "source"}
 
 ``effect`` names are those of :data:`uw_sil.sim.effects.EFFECTS`; ``params`` of a verdict or candidate are
@@ -105,6 +107,7 @@ class Diagnosis:
     timing: dict
     final_params: dict                  # {"base": {...}, "effects": {...}} of the final model
     not_judged: list = field(default_factory=list)
+    undecided: list = field(default_factory=list)  # :func:`undecided_effects`
     source: str = ""
     selection: list = field(default_factory=list)  # the greedy selection's rounds
     figures: dict = field(default_factory=dict)    # data for the report (not serialized)
@@ -124,6 +127,7 @@ class Diagnosis:
             "noise": self.noise,
             "signatures": self.signatures,
             "not_judged": self.not_judged,
+            "undecided": self.undecided,
             "frames": self.frames,
             "timing": self.timing,
             "source": self.source,
@@ -136,6 +140,8 @@ class Diagnosis:
                          f"(held-out θ {self.base['theta_heldout']:.4f}, noise margin {self.noise['margin']:.4f})")
         for v in self.verdict:
             lines.append(f"verdict: {v['effect']} (confidence {v['confidence']:.2f}): {v['explanation']}")
+        for u in self.undecided:
+            lines.append(f"undecided, not named (the final model's effects explain it as well): {u['explanation']}")
         if self.final.get("theta_report") is not None:
             n = sum(f["role"] == "report" for f in self.frames)
             lines.append(f"on {n} report frame(s) that no fit or choice saw: θ {self.base['theta_report']:.4f} (base) "
@@ -211,6 +217,12 @@ def validate_diagnosis_json(d: dict) -> None:
             need(r, k, str, f"mismatch.regions[{i}]")
         for k in ("rms", "share"):
             need(r, k, num, f"mismatch.regions[{i}]")
+    named = {v["effect"] for v in d["verdict"]}
+    for i, u in enumerate(need(d, "undecided", list, "diagnosis") if "undecided" in d else []):
+        w = f"undecided[{i}]"
+        if need(u, "effect", str, w) in named:
+            raise ValueError(f"{w}: {u['effect']} is named in the verdict")
+        need(u, "explanation", str, w)
 
 
 # ================================================================================== pipeline
@@ -346,6 +358,65 @@ def _candidate_row(rnd, current, e: str, r, margin: float, ok: bool, strength: f
     if r.extra:
         row["fit"] = {k: v for k, v in r.extra.items() if isinstance(v, (int, float, str))}
     return row
+
+
+def _evidence_words(c: dict) -> str:
+    """A candidate row's held-out evidence, by the rule that judged it, in words."""
+    h = c.get("heldout_residual") or {}
+    if h.get("improvement") is None:
+        h = c.get("heldout_statistic") or {}     # a pose correction's own residual test
+    if c.get("criterion") == "residual" and h.get("improvement") is not None:
+        ev = f"held-out residual {100 * h['improvement']:.0f} % lower, margin {100 * h['margin']:.0f} %"
+    elif c.get("criterion") == "statistic":
+        ev = f"held-out statistics {c['strength']:.2f} margins nearer the recording's"
+    else:
+        ev = f"held-out θ {c['delta_heldout']:+.4f}, margin {c['margin']:.4f}"
+    return f"added to {c['model']}: {ev}"
+
+
+def undecided_effects(candidates: list, final_effects, held_neutral_at_end=()) -> list:
+    """The effects the held-out frames could not tell from the final model's: each beat its margin at a step of
+    the forward selection (its refit, not held at its neutral values, raised held-out θ, lowered the held-out
+    residual or moved the held-out statistics beyond the margin) and is not in the final model, because other
+    effects explain as much of the same mismatch: another was chosen that round and it no longer beat its margin
+    beside it, or the backward elimination dropped it (the model without it, refitted, was as good), or it
+    joined the model and the final model holds it at its neutral values (``held_neutral_at_end``).
+
+    Not a verdict: the frames hold evidence for it that the final model's effects account for too. Lamps and
+    lens vignetting are the common case: a rig of lamps around the camera lights a facing panel with a falloff
+    from its centre that, seen from the camera, is nearly a function of the angle off the optical axis, as
+    vignetting is; which of the two it is, or how much of each, takes frames that move them apart (lamps dimmed
+    or off, a flat field). Returns one entry per effect, strongest evidence first, with the step that showed it
+    (``round``, ``model``, ``criterion``, ``strength`` in margins, ``delta_heldout``, ``margin``), how it ended
+    (``last``: its latest row) and ``explanation``."""
+    final = set(final_effects)
+    rows = {}
+    for c in candidates:
+        if c["effect"] not in final:
+            rows.setdefault(c["effect"], []).append(c)
+    out = []
+    for e, rs in rows.items():
+        beat = [c for c in rs if c.get("accepted") and not c.get("neutral") and not c.get("elimination")]
+        if not beat:
+            continue
+        best = max(beat, key=lambda c: c.get("strength", 0.0))
+        last = rs[-1]
+        if last.get("elimination"):
+            end = (f"then dropped by the backward elimination: the model without it was as good ("
+                   f"{_evidence_words(last)})")
+        elif e in held_neutral_at_end:
+            end = "it joined the model, and the final model holds it at its neutral values (the model without it)"
+        elif last.get("round") == best.get("round"):
+            end = "it was not refitted beside the effects chosen after it"
+        else:
+            end = f"beside the effects chosen since, it fell below its margin ({_evidence_words(last)})"
+        out.append({"effect": e, "round": best["round"], "model": best["model"], "criterion": best.get("criterion"),
+                    "strength": float(best.get("strength", 0.0)), "delta_heldout": best["delta_heldout"],
+                    "margin": best.get("margin"),
+                    "last": {k: last.get(k) for k in ("round", "model", "delta_heldout", "margin", "criterion")},
+                    "explanation": f"{e}: beat its margin in round {best['round']} ({_evidence_words(best)}); {end}"})
+    out.sort(key=lambda u: -u["strength"])
+    return out
 
 
 def _without_one(shared, e):
@@ -1005,6 +1076,7 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
         frames=[{"index": f.index, "role": f.role, "range_m": f.range_median, "coverage": f.coverage}
                 for f in sorted(frames + report_f, key=lambda f: f.index)],
         timing=timing, final_params=final_params, not_judged=not_judged, source=source, selection=steps,
+        undecided=undecided_effects(candidates, final_effects, [a["effect"] for a in neutral]),
         figures={"rframes": rall, "sims": sims, "res": res, "sigs": sigs, "prox": prox, "fits": fits,
                  "base_x": base_x, "fog": fog, "held": [R_hi[id(f)] for f in held_f],
                  "base_held_pf": base_sel_pf, "final_key": final_key})

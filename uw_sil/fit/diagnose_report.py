@@ -230,6 +230,10 @@ def write_diagnosis_report(diag, out_dir, title: str = "uw_sil mismatch diagnosi
     else:
         parts.append(f"<p><b>none</b>: no effect raised held-out θ beyond the fit's noise (margin "
                      f"{d['noise']['margin']:.4f}).</p>")
+    if d.get("undecided"):
+        parts.append("<p>Undecided, not named: evidence the final model's effects explain as well (frames that move "
+                     "them apart would decide)</p><ul>" + "".join(f"<li>{html.escape(u['explanation'])}</li>"
+                                                                 for u in d["undecided"]) + "</ul>")
     parts.append(f"<p>held-out θ: base {d['base']['theta_heldout']:.4f} → final {d['final']['theta_heldout']:.4f} "
                  f"(train θ of the base fit {d['base']['theta_train']:.4f})</p>")
     if d["final"].get("theta_heldout_simulated") is not None:

@@ -107,8 +107,9 @@ def diagnostic_statuses(doc: dict, node: str = "backward_fit") -> list:
     A summary (``OK`` when no effect is needed, ``WARN`` when the model was extended), then one per effect
     judged, in the order first judged: ``WARN`` for an accepted effect (its explanation; its confidence,
     doubts and fitted parameters as key/values), ``OK`` for one that was not needed (its best held-out gain
-    against its margin). Each is a dict ``level``, ``name``, ``message``, ``hardware_id``, ``values``
-    (``{key: text}``)."""
+    against its margin) or is undecided (``undecided`` of the document: it beat its margin, and the final
+    model's effects explain it as well). Each is a dict ``level``, ``name``, ``message``, ``hardware_id``,
+    ``values`` (``{key: text}``)."""
     verdict = {v["effect"]: v for v in doc.get("verdict", [])}
     base, final = doc["base"], doc["final"]
     theta = f"held-out θ {base['theta_heldout']:.4f} -> {final['theta_heldout']:.4f}"
@@ -126,6 +127,7 @@ def diagnostic_statuses(doc: dict, node: str = "backward_fit") -> list:
     judged: dict = {}
     for c in doc.get("candidates", []):
         judged.setdefault(c["effect"], []).append(c)
+    undecided = {u["effect"]: u for u in doc.get("undecided", [])}
     for effect, rows in judged.items():
         if effect in verdict:
             v = verdict[effect]
@@ -134,12 +136,10 @@ def diagnostic_statuses(doc: dict, node: str = "backward_fit") -> list:
                 values["doubts"] = v["doubts"]
             out.append(_status(WARN, f"{STATUS_PREFIX}: {effect}", v["explanation"], node, values))
             continue
-        dropped = [c for c in rows if c.get("elimination") and not c.get("accepted")]
-        if dropped:
-            c = dropped[-1]
-            out.append(_status(OK, f"{STATUS_PREFIX}: {effect}", f"dropped: accepted first, then the model without "
-                               f"it ({c['model']}, refitted) did as well on the held-out frames", node,
-                               {"delta_heldout": c["delta_heldout"], "margin": c.get("margin", 0.0)}))
+        if effect in undecided:         # evidence the final model's effects explain as well (diagnose.py)
+            u = undecided[effect]
+            out.append(_status(OK, f"{STATUS_PREFIX}: {effect}", f"undecided, not named: {u['explanation']}", node,
+                               {"delta_heldout": u["delta_heldout"], "margin": u["margin"], "round": u["round"]}))
             continue
         best = max(rows, key=lambda c: c["delta_heldout"])
         crit = "held-out statistic" if best.get("criterion") == "statistic" else "held-out θ"
