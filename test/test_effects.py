@@ -241,7 +241,9 @@ def test_the_shadow_test_skips_only_points_it_would_find_lit(frames, renderer):
     """The shadow test first drops the points that no occluder can reach (a depth erosion over the lamp's parallax
     radius): with every point tested instead, the visibility is the same, on the panel near, tilted and far, for
     lamps beside, above, far to the side of and at the camera, and on two block scenes. (A radius taken from the
-    occluder's thickness, 0.3 m, instead of the deepest sample, fails on the deeper block.)"""
+    occluder's thickness, 0.3 m, instead of the deepest sample, fails on the deeper block.) One grid serves every
+    lamp, as the candidates of a fit share it: the points kept for testing depend on the lamp only through the
+    radius and are kept per radius, so lamps mirrored or moved at the same distance reuse them."""
     from uw_sil.sim.effects.artificial_light import _shadow_grid, _visibility_on
     from uw_sil.sim.model import Geometry
 
@@ -253,7 +255,9 @@ def test_the_shadow_test_skips_only_points_it_would_find_lit(frames, renderer):
     grids.append(_shadow_grid(_block_scene(cam2, z_block=1.4)[0]))
     shadowed = 0
     for g in grids:
-        for L in ((0.6, -0.3, 0.0), (-0.35, 0.0, 0.0), (1.5, 0.8, 0.0), (0.0, -0.5, 0.1), (0.0, 0.0, 0.0)):
+        # (the lamp at the camera first: its radius is the smallest, its points to test the fewest)
+        for L in ((0.0, 0.0, 0.0), (0.6, -0.3, 0.0), (-0.35, 0.0, 0.0), (1.5, 0.8, 0.0), (0.0, -0.5, 0.1),
+                  (0.35, 0.0, 0.0), (0.0, 0.6, 0.0)):
             L = np.asarray(L, np.float32)
             fast = _visibility_on(g, L)
             np.testing.assert_array_equal(fast, _visibility_on(g, L, prune=False))

@@ -162,8 +162,19 @@ def _visibility_on(g: dict, L: np.ndarray, prune: bool = True) -> np.ndarray:
     gap = zmin - tmax
     r = max(h, w) if gap <= 0.05 else int(math.ceil(max(fx, fy) * lxy * tmax / (zmin * gap))) + 2
     r = min(r, max(h, w))
-    zfin = np.where(hit, z, np.float32(1e6)).astype(np.float32)
-    cand = hit & (_nearest_within(zfin, r) < z - np.float32(SHADOW_BIAS)) if prune else hit
+    zfin = g.get("zfin")
+    if zfin is None:
+        zfin = g["zfin"] = np.where(hit, z, np.float32(1e6)).astype(np.float32)
+    if prune:
+        # the points that can be in shadow depend on the lamp only through r: kept per r for the grid
+        memo = g.setdefault("cand", {})
+        cand = memo.get(r)
+        if cand is None:
+            if len(memo) >= 16:
+                memo.clear()
+            cand = memo[r] = hit & (_nearest_within(zfin, r) < z - np.float32(SHADOW_BIAS))
+    else:
+        cand = hit
     idx = np.flatnonzero(cand)
     if idx.size == 0:
         return vis
@@ -393,7 +404,9 @@ class ArtificialLight(Effect):
             return vis
         f = g["sub"]
         h, w = g["z"].shape[0] // f, g["z"].shape[1] // f
-        hit = g["hit"].reshape(h, f, w, f).sum(axis=(1, 3), dtype=np.float32)
+        hit = g.get("hit_blocks")
+        if hit is None:
+            hit = g["hit_blocks"] = g["hit"].reshape(h, f, w, f).sum(axis=(1, 3), dtype=np.float32)
         lit = np.where(g["hit"], vis, np.float32(0)).reshape(h, f, w, f).sum(axis=(1, 3), dtype=np.float32)
         return np.where(hit > 0, lit / np.maximum(hit, 1), np.float32(1.0)).astype(np.float32)
 
