@@ -81,7 +81,7 @@ class ArtificialLightJudge(Judge):
         if d < MIN_DISTANCE:
             # (the model's rig is a pair of lamps; lamps on all sides of the camera light a facing scene nearly
             # as one lamp at their centre would, and are fitted there: on seed 402 of the physical dives a ring of
-            # four at 0.3-0.7 m was fitted 0.01 m from the camera)
+            # four at 0.4-0.7 m was fitted 0.01 m from the camera)
             out.append(f"lamps {d:.2f} m from the camera: ROV lamps sit {ROV_DISTANCE[0]:g}-{ROV_DISTANCE[1]:g} m "
                        f"from it (lamps on all sides of the camera light the view nearly as one lamp at their "
                        f"centre)")
