@@ -104,15 +104,20 @@ def veil_cap(values: dict, a) -> float:
 
 def _shadow_grid(geom, planes=None) -> dict:
     """What the screen-space shadow test needs, on ``geom.fine`` where there is one: depth map (inf where
-    nothing is hit), hit mask, surface points as planes (``planes``: those of ``geom`` where already split),
-    part ids, intrinsics and the block size ``sub``."""
+    nothing is hit; ``zfin``: 1e6 m there), hit mask, surface points as planes (``planes``: those of ``geom`` where
+    already split), part ids, intrinsics, the block size ``sub`` and the hit pixels per block (``hit_blocks``), and
+    ``cand``: the points the test keeps for each parallax radius, filled as lamps are tested (they depend on the
+    lamp only through the radius, so the candidates of a fit share them)."""
     g = geom.fine if geom.fine is not None else geom
     cam = g.camera
     if g is not geom or planes is None:
         planes = [np.ascontiguousarray(g.X[..., k]) for k in range(3)]
+    f = g.shape[0] // geom.shape[0]
+    h, w = g.shape[0] // f, g.shape[1] // f
     return {"z": np.where(g.hit, g.depth, np.float32(np.inf)).astype(np.float32), "hit": g.hit, "X": planes,
+            "zfin": np.where(g.hit, g.depth, np.float32(1e6)).astype(np.float32),
             "parts": np.ascontiguousarray(g.part_ids), "K": tuple(float(v) for v in (cam.fx, cam.fy, cam.cx, cam.cy)),
-            "sub": g.shape[0] // geom.shape[0]}
+            "sub": f, "hit_blocks": g.hit.reshape(h, f, w, f).sum(axis=(1, 3), dtype=np.float32), "cand": {}}
 
 
 #: Block size of the shadow test's pruning erosion for large radii (:func:`_nearest_within`).
@@ -162,12 +167,9 @@ def _visibility_on(g: dict, L: np.ndarray, prune: bool = True) -> np.ndarray:
     gap = zmin - tmax
     r = max(h, w) if gap <= 0.05 else int(math.ceil(max(fx, fy) * lxy * tmax / (zmin * gap))) + 2
     r = min(r, max(h, w))
-    zfin = g.get("zfin")
-    if zfin is None:
-        zfin = g["zfin"] = np.where(hit, z, np.float32(1e6)).astype(np.float32)
+    zfin = g["zfin"]
     if prune:
-        # the points that can be in shadow depend on the lamp only through r: kept per r for the grid
-        memo = g.setdefault("cand", {})
+        memo = g["cand"]            # kept per radius (at most 16: 5 MB per 640x480 frame)
         cand = memo.get(r)
         if cand is None:
             if len(memo) >= 16:
@@ -404,9 +406,7 @@ class ArtificialLight(Effect):
             return vis
         f = g["sub"]
         h, w = g["z"].shape[0] // f, g["z"].shape[1] // f
-        hit = g.get("hit_blocks")
-        if hit is None:
-            hit = g["hit_blocks"] = g["hit"].reshape(h, f, w, f).sum(axis=(1, 3), dtype=np.float32)
+        hit = g["hit_blocks"]
         lit = np.where(g["hit"], vis, np.float32(0)).reshape(h, f, w, f).sum(axis=(1, 3), dtype=np.float32)
         return np.where(hit > 0, lit / np.maximum(hit, 1), np.float32(1.0)).astype(np.float32)
 
