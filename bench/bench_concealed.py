@@ -321,7 +321,8 @@ def summarize_multi(rows, label: str):
     recall = TP / (TP + FN) if TP + FN else float("nan")
     precision = TP / (TP + FP) if TP + FP else float("nan")
     # the physical generator's camera always counts photons (Poisson shot noise), which the base model's
-    # constant noise lacks: `sensor_noise` named there is physics the recording has, not a false alarm
+    # constant noise lacks. The noise judge compares its model with white shot and read noise alone, so
+    # `sensor_noise` is named for structure beyond that; the count shows how often it still is without one
     own_noise = sum(r["gen"] == "physical" and "sensor_noise" in r["pred"] and "sensor_noise" not in r["truth"]
                     for r in multi)
     exact = sum(set(r["truth"]) == set(r["pred"]) for r in multi)
@@ -358,7 +359,7 @@ def summarize_multi(rows, label: str):
     within = sum(d >= -0.01 for d in close)
     within_fair = sum(d >= -0.01 for d in fair)
     if own_noise:
-        print(f"  precision without the {own_noise} `sensor_noise` named for the physical camera's own shot noise: "
+        print(f"  precision without the {own_noise} `sensor_noise` named on physical dives with the low-gain camera: "
               f"{100 * TP / (TP + FP - own_noise):.0f}% ({TP}/{TP + FP - own_noise})")
     print(f"{label} multi: recall {100 * recall:.0f}% ({TP}/{TP + FN}), precision {100 * precision:.0f}% ({TP}/{TP + FP}), "
           f"exact sets {exact}/{len(multi)}; held-out θ of the final model within 0.01 of its control's (or above) "

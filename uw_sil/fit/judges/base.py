@@ -214,7 +214,8 @@ class Refit:
 
     ``params`` is ``{"base": {...}, "effects": {name: values}}`` of the whole model; ``sel_pf`` θ per
     held-out frame; ``statistic`` (``kind == "statistic"`` or a supporting statistic) ``{"name", "real",
-    "base_sim", "candidate_sim", "improvement", "margin", ...}``.
+    "base_sim", "candidate_sim", "improvement", "margin", ...}`` (``base_label``: what ``base_sim`` simulated, when
+    not the model without the effect).
     """
 
     effect: str
@@ -612,8 +613,9 @@ def gain_words(b_held: float, c_held: float, statistic: Optional[dict] = None,
                 f"held-out θ {b_held:.3f} -> {c_held:.3f}, which a smooth brightness change in dark, noisy "
                 f"frames barely moves)")
     if statistic is not None:
+        base = statistic.get("base_label", "model without it")
         return (f"modelling it brings the held-out frames' {statistic['name']} from {statistic['base_sim']:.3g} "
-                f"(model without it) to {statistic['candidate_sim']:.3g} (recording: {statistic['real']:.3g}); "
+                f"({base}) to {statistic['candidate_sim']:.3g} (recording: {statistic['real']:.3g}); "
                 f"held-out θ {b_held:.3f} -> {c_held:.3f}")
     return f"modelling it raises held-out θ from {b_held:.3f} to {c_held:.3f}"
 
