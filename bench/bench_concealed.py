@@ -321,7 +321,7 @@ def summarize_multi(rows, label: str):
     recall = TP / (TP + FN) if TP + FN else float("nan")
     precision = TP / (TP + FP) if TP + FP else float("nan")
     # the physical generator's camera always counts photons (Poisson shot noise), which the base model's
-    # constant noise lacks. The noise judge compares its model with white shot and read noise alone, so
+    # constant noise lacks. The noise judge compares its model with its own shot and read noise, white, so
     # `sensor_noise` is named for structure beyond that; the count shows how often it still is without one
     own_noise = sum(r["gen"] == "physical" and "sensor_noise" in r["pred"] and "sensor_noise" not in r["truth"]
                     for r in multi)

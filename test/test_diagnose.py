@@ -228,11 +228,11 @@ def near_frames(tmp_path_factory):
 @pytest.mark.parametrize("corr, named", [(0.0, False), (0.6, True)])
 def test_noise_is_named_for_structure_beyond_shot_and_read_noise(near_frames, corr, named):
     """Every camera's noise has photon shot noise and read noise; the noise judge compares the structured model
-    with those two alone, fitted the same way, and names structure beyond them. Recordings simulated with
+    with its own shot and read noise without the structure, and names structure beyond them. Recordings simulated with
     dark water (the lamp-lit deep sea's): white shot and read noise (a low-gain camera) is not a missing
     effect, and the photon transfer fit finds its gain; the same noise correlated over 0.6 px (demosaicing)
-    is one. Measured when written: improvement 0 against a margin of 0.05 (white; photon transfer fitted
-    0.42 DN/DN, 0.39 DN), 1.60 against 0.28 (correlated, fitted 0.60 px)."""
+    is one. Measured: improvement -0.009 against a margin of 0.05 (white; the candidate's white twin 0.39 DN/DN,
+    0.57 DN), 1.52 against 0.26 (correlated, fitted 0.61 px)."""
     import dataclasses
 
     from uw_sil.fit.diagfit import EffectModel
@@ -248,7 +248,7 @@ def test_noise_is_named_for_structure_beyond_shot_and_read_noise(near_frames, co
            for k, f in enumerate(near_frames)]
     r = noise_refit(rec[:3], rec[3:], np.array(base), None, "exp2", 5, np.zeros(3), 0.0)
     st, fitted = r["statistic"], r["params"]["effects"]["sensor_noise"]
-    assert st["base_label"].startswith("white shot and read noise alone")
+    assert st["base_label"].startswith("its shot and read noise alone, white")
     assert (st["improvement"] > st["margin"]) == named, (st["improvement"], st["margin"], fitted)
     if named:
         assert 0.4 < fitted["corr"] < 0.8, fitted
