@@ -195,7 +195,7 @@ def noise_refit(fit_f, held_f, base_x, sig, fog, seed, ref_held_pf, base_theta_t
     def compare(frames, S_list, real, hits, mdl, statistics=True):
         """per frame: statistics distance of the white twin and of the candidate (``statistics``; else empty
         lists); θ of the base model (the camera's constant noise) and of the candidate"""
-        ep, ec, tb, tc = [], [], [], []
+        ew, ec, tb, tc = [], [], [], []
         for k, f in enumerate(frames):
             sg = water_noise_sigma(f.image, ~np.isfinite(f.render.range))
             base_img = S_list[k].astype(np.float32).copy()
@@ -203,34 +203,37 @@ def noise_refit(fit_f, held_f, base_x, sig, fog, seed, ref_held_pf, base_theta_t
             # (each simulation draws its noise from the frame's own seed: skipping one changes no other)
             cand = np.rint(np.clip(mdl.simulate(k, x[None])[0] * 255.0, 0, 255))
             if statistics:
-                pt = np.rint(np.clip(mdl.simulate(k, twin[None])[0] * 255.0, 0, 255))
-                ep.append(dist(real[k], hits[k].statistics(luminance(pt), intensities=False)))
                 ec.append(dist(real[k], hits[k].statistics(luminance(cand), intensities=False)))
+                if twin is x:           # the candidate is its white twin (not named): the same image
+                    ew.append(ec[-1])
+                else:
+                    white = np.rint(np.clip(mdl.simulate(k, twin[None])[0] * 255.0, 0, 255))
+                    ew.append(dist(real[k], hits[k].statistics(luminance(white), intensities=False)))
             hit = hits[k].hit
             hm = [hit, ~hit] if hit.any() and not hit.all() else None
             ref = ThetaReference(f.image, hist_mask=hm)
             tb.append(float(ref.score(base_img)[0]))
             tc.append(float(ref.score(cand)[0]))
-        return ep, ec, np.array(tb), np.array(tc)
+        return ew, ec, np.array(tb), np.array(tc)
 
     hmodel = model.like(rheld, seed=seed + 50)
-    e_pt, e_cand, tb, tc = compare(held_f, Sheld, real_held, hheld, hmodel)
+    e_white, e_cand, tb, tc = compare(held_f, Sheld, real_held, hheld, hmodel)
     _, _, tbf, tcf = compare(fit_f, Sfit, real_fit, hfit, model, statistics=False)   # θ only: theta_train
-    e_pt, e_cand = np.array(e_pt), np.array(e_cand)
-    ok = np.isfinite(e_pt) & np.isfinite(e_cand)
-    imp = (e_pt - e_cand)[ok]
+    e_white, e_cand = np.array(e_white), np.array(e_cand)
+    ok = np.isfinite(e_white) & np.isfinite(e_cand)
+    imp = (e_white - e_cand)[ok]
     held_pf = np.asarray(ref_held_pf, float) + (np.array(tc) - np.array(tb))
-    pt_values = model.params_of(twin)["effects"]["sensor_noise"]
+    white_values = model.params_of(twin)["effects"]["sensor_noise"]
     stat = {"name": "distance of noise statistics (log sigma, lag ratio, patterns) to the recording",
-            "real": 0.0, "base_sim": float(np.mean(e_pt[ok])) if ok.any() else float("nan"),
-            "base_label": (f"its shot and read noise alone, white: {pt_values['shot']:.2f} DN/DN, "
-                           f"{pt_values['read']:.2f} DN"),
+            "real": 0.0, "base_sim": float(np.mean(e_white[ok])) if ok.any() else float("nan"),
+            "base_label": (f"its shot and read noise alone, white: {white_values['shot']:.2f} DN/DN, "
+                           f"{white_values['read']:.2f} DN"),
             "candidate_sim": float(np.mean(e_cand[ok])) if ok.any() else float("nan"),
             "improvement": float(imp.mean()) if imp.size else 0.0,
             "margin": max(0.05, 2.0 * bootstrap_se(imp, seed=seed)) if imp.size else float("inf"),
             "per_frame_improvement": imp.tolist(), "theta_full_res_base": tb.tolist(),
             "theta_full_res_candidate": tc.tolist(),
-            "photon_transfer": {"shot": float(pt_values["shot"]), "read": float(pt_values["read"])}}
+            "photon_transfer": {"shot": float(white_values["shot"]), "read": float(white_values["read"])}}
     return {"x": x, "theta_train": float(base_theta_train + np.mean(tcf - tbf)), "held_pf": held_pf,
             "params": model.params_of(x), "model_effects": ["sensor_noise"], "fit": None, "res": "full",
             "statistic": stat}
