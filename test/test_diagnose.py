@@ -306,6 +306,43 @@ def test_noise_statistics_leave_particles_out():
     assert 1.8 < st["sigma_water"] < 2.5 and st["lag_ratio"] > 0.9
 
 
+@pytest.mark.parametrize("sigma", [0.3, 0.5, 0.7, 1.5])
+def test_fixed_pattern_ratios_hold_in_black_water_rounded_to_grey_levels(sigma):
+    """Deep-sea water a few grey levels dark with under a grey level of noise, each channel rounded: the
+    medians of its lines stepped with the rounding and read white noise as a column and row pattern 9-21 times
+    white. The ratios must stay near white there, and a real column pattern must still show."""
+    from uw_sil.fit.signatures import noise_statistics
+
+    rng = np.random.default_rng(5)
+    h, w = 480, 640
+    ramp = np.linspace(1.0, 3.5, w)[None, :] + np.linspace(0.0, 0.2, h)[:, None]   # the lamps' falloff
+    hit = np.zeros((h, w), bool)
+
+    def luminance_of(column_pattern):
+        ch = [np.round(np.clip(k * ramp + rng.normal(0, sigma, (h, w)) + column_pattern, 0, 255)) for k in (1, .8, .5)]
+        return (0.299 * ch[0] + 0.587 * ch[1] + 0.114 * ch[2]).astype(np.float32)
+
+    S = (0.299 + 0.587 * 0.8 + 0.114 * 0.5) * ramp.astype(np.float32)
+    white = noise_statistics(luminance_of(0.0), S, hit)
+    assert 0.5 < white["col_ratio"] < 1.5 and 0.5 < white["row_ratio"] < 1.5, white
+    pattern = noise_statistics(luminance_of(rng.normal(0, 0.15 * sigma, (1, w))), S, hit)
+    assert pattern["col_ratio"] > 3.0 and 0.5 < pattern["row_ratio"] < 1.5, pattern
+
+
+def test_masked_line_medians_are_nanmedians():
+    """The line medians with particles left out are what np.nanmedian gives (odd and even counts, both axes)."""
+    from uw_sil.fit.signatures import _masked_median
+
+    rng = np.random.default_rng(3)
+    block = np.round(rng.normal(0, 2, (61, 80))).astype(np.float32)         # ties, as in rounded water
+    keep = rng.random(block.shape) > 0.3
+    keep[:, 0] = True
+    for axis in (0, 1):
+        n = keep.sum(axis=axis)
+        np.testing.assert_array_equal(_masked_median(block, keep, axis, n),
+                                      np.nanmedian(np.where(keep, block, np.nan), axis=axis))
+
+
 def test_one_frames_noise_pixels_measure_many_images_alike():
     """The noise fit builds a frame's NoisePixels once and measures dozens of simulations with them: each
     image's statistics must be what noise_statistics gives that image alone (nothing of one image stays)."""
