@@ -1,0 +1,116 @@
+"""The nine physically based test dives (seeds 401-409): what `uw-sil diagnose` names on each, blind.
+
+The README's diagnosis numbers since 2026-11-27 ("the nine physical dives of seeds 401-409") refer to these
+dives: the physically based generator (``physical_effects.py``: the vehicle's lamps as the only light, always
+on, so ``artificial_light`` is in every truth) with the effects below concealed on top, one set per seed,
+chosen once to mix mild and strong, single and several effects and one dive with nothing but the lamps (405).
+Each dive (8 frames, 640x480) is written, diagnosed in a fresh process from the bag alone (``uw-sil diagnose
+--bag B --json J``; the truth stays in this script) and scored: effects named right, missed and named falsely,
+the lamps, the final model's held-out θ, the time.
+
+Bags and documents go to ``--out-dir`` (default a temporary directory); with a directory, a dive whose document
+is there is scored again, not diagnosed again (``--again`` diagnoses it anyway), so a run can be resumed and
+two checkouts compared on the same bags (``--code DIR``: the checkout to diagnose with, default this one).
+
+    .venv/bin/python bench/bench_physical_dives.py [--seeds 401,403] [--out-dir DIR] [--code DIR] [--again]
+
+A dive takes 2-4 minutes on the 2-core machine (about 20 minutes for nine, quiet). Last line::
+
+    physical dives: named R/T right, F false, lamps L/N, mean held-out θ X, dives=N
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+REPO = HERE.parent
+
+#: Concealed on top of the lamps, per seed.
+DIVES = {
+    401: {"forward_scatter": "mild", "marine_snow": "mild", "vignetting": "mild"},
+    402: {"vignetting": "strong"},
+    403: {"vignetting": "mild"},
+    404: {"forward_scatter": "strong", "vignetting": "mild", "sensor_noise": "mild"},
+    405: {},
+    406: {"camera_response": "mild", "forward_scatter": "mild"},
+    407: {"unmodeled_geometry": "strong", "vignetting": "mild"},
+    408: {"camera_response": "strong", "marine_snow": "strong"},
+    409: {"forward_scatter": "strong", "unmodeled_geometry": "mild", "sensor_noise": "strong"},
+}
+
+
+def truth_of(seed: int) -> set:
+    return set(DIVES[seed]) | {"artificial_light"}
+
+
+def write_dive(seed: int, bag: Path) -> None:
+    sys.path.insert(0, str(HERE))
+    from physical_effects import synth_physical
+
+    bag.parent.mkdir(parents=True, exist_ok=True)
+    synth_physical(str(bag), dict(DIVES[seed]), n_frames=8, seed=seed, width=640)
+
+
+def diagnose(bag: Path, out: Path, code: Path) -> float:
+    """``uw-sil diagnose`` of ``bag`` in a fresh process on the code of ``code``; its wall time."""
+    env = {**os.environ, "PYTHONPATH": str(code), "PYOPENGL_PLATFORM": "osmesa"}
+    t0 = time.perf_counter()
+    # (run beside the document, not here: `python -m` puts the working directory first on the path)
+    subprocess.run([sys.executable, "-m", "uw_sil.cli", "diagnose", "--bag", str(bag), "--frames", "8",
+                    "--json", str(out)], env=env, check=True, stdout=subprocess.DEVNULL, cwd=out.parent)
+    return time.perf_counter() - t0
+
+
+def score(seed: int, doc: dict) -> dict:
+    named = {v["effect"] for v in doc["verdict"]}
+    truth = truth_of(seed)
+    return {"seed": seed, "right": sorted(named & truth), "missed": sorted(truth - named),
+            "false": sorted(named - truth), "theta": float(doc["final"]["theta_heldout"]),
+            "time_s": float(doc.get("timing", {}).get("total_s", float("nan")))}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--seeds", default=",".join(map(str, DIVES)), help="comma-separated seeds of DIVES")
+    ap.add_argument("--out-dir", help="keep bags and documents here (resumes: documents there are reused)")
+    ap.add_argument("--code", default=str(REPO), help="checkout to diagnose with (default: this one)")
+    ap.add_argument("--again", action="store_true", help="diagnose even where a document exists")
+    args = ap.parse_args(argv)
+    seeds = [int(s) for s in args.seeds.split(",")]
+    unknown = [s for s in seeds if s not in DIVES]
+    if unknown:
+        ap.error(f"no dive for seed(s) {unknown}; the dives are {sorted(DIVES)}")
+    with tempfile.TemporaryDirectory(prefix="uw_sil-dives-") as tmp:
+        root = Path(args.out_dir or tmp)
+        rows = []
+        for seed in seeds:
+            bag, js = root / f"dive{seed}" / "trial.mcap", root / f"dive{seed}.json"
+            if not bag.exists():
+                write_dive(seed, bag)
+            how = "document reused"
+            if args.again or not js.exists():
+                how = f"load {os.getloadavg()[0]:.1f} before"
+                diagnose(bag, js, Path(args.code))
+            r = score(seed, json.loads(js.read_text()))
+            rows.append(r)
+            print(f"{seed}: right {r['right']}, missed {r['missed']}, false {r['false']}, held-out θ {r['theta']:.4f}, "
+                  f"{r['time_s']:.0f} s ({how})", flush=True)
+    right = sum(len(r["right"]) for r in rows)
+    total = sum(len(truth_of(r["seed"])) for r in rows)
+    false = sum(len(r["false"]) for r in rows)
+    lamps = sum("artificial_light" in r["right"] for r in rows)
+    theta = sum(r["theta"] for r in rows) / len(rows)
+    print(f"physical dives: named {right}/{total} right, {false} false, lamps {lamps}/{len(rows)}, "
+          f"mean held-out θ {theta:.4f}, dives={len(rows)}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
