@@ -65,7 +65,7 @@ _LUMA = np.array([0.299, 0.587, 0.114], np.float32)
 # Below this luminance noise (grey levels; 0.7-1.0 per channel) the rounding of 8-bit channels makes the
 # median of a line step with the share of its pixels on either side of a grey level: the fixed-pattern
 # statistics move from line medians (above) to winsorized line means (below), blended in between (measured
-# on white noise rounded per channel: median-based ratios 9-21x the white value at 0.33 grey levels of
+# on white noise rounded per channel: median-based ratios 9-21x the white value at 0.28-0.33 grey levels of
 # luminance noise, 1.6x at 0.44, 1.0x from 0.57 up).
 ROUNDING_NOISE_DN = (0.5, 0.7)
 WINSOR_Z = 1.5
