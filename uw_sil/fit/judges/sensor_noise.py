@@ -103,9 +103,12 @@ def noise_refit(fit_f, held_f, base_x, sig, fog, seed, ref_held_pf, base_theta_t
             real.append(pix.statistics(Y))
         return rfs, S, real, hits
 
-    def stats_of(img255, pix):
+    def recorded(img255):
+        """a simulation (grey levels) as the camera records it: clipped to 0-255 and rounded, in place"""
         np.clip(img255, 0, 255, out=img255)
-        np.rint(img255, out=img255)
+        return np.rint(img255, out=img255)
+
+    def stats_of(img255, pix):
         return pix.statistics(luminance(img255), intensities=False)      # dist() uses no intensity
 
     def dist(a, b):
@@ -156,7 +159,7 @@ def noise_refit(fit_f, held_f, base_x, sig, fog, seed, ref_held_pf, base_theta_t
 
     def frame_dist(k, X):
         imgs = model.simulate(k, X) * 255.0
-        d = np.array([dist(real_fit[k], stats_of(imgs[j], hfit[k])) for j in range(len(X))])
+        d = np.array([dist(real_fit[k], stats_of(recorded(imgs[j]), hfit[k])) for j in range(len(X))])
         return np.where(np.isnan(d), 0.0, d)
 
     with ThreadPoolExecutor(default_threads(), thread_name_prefix="uw_sil-noise") as pool, remembered_white_noise():
@@ -201,14 +204,13 @@ def noise_refit(fit_f, held_f, base_x, sig, fog, seed, ref_held_pf, base_theta_t
             base_img = S_list[k].astype(np.float32).copy()
             NoiseField(base_img.shape, sg, seed=seed + 17 * k).apply(base_img)
             # (each simulation draws its noise from the frame's own seed: skipping one changes no other)
-            cand = np.rint(np.clip(mdl.simulate(k, x[None])[0] * 255.0, 0, 255))
+            cand = recorded(mdl.simulate(k, x[None])[0] * 255.0)
             if statistics:
-                ec.append(dist(real[k], hits[k].statistics(luminance(cand), intensities=False)))
+                ec.append(dist(real[k], stats_of(cand, hits[k])))
                 if twin is x:           # the candidate is its white twin (not named): the same image
                     ew.append(ec[-1])
                 else:
-                    white = np.rint(np.clip(mdl.simulate(k, twin[None])[0] * 255.0, 0, 255))
-                    ew.append(dist(real[k], hits[k].statistics(luminance(white), intensities=False)))
+                    ew.append(dist(real[k], stats_of(recorded(mdl.simulate(k, twin[None])[0] * 255.0), hits[k])))
             hit = hits[k].hit
             hm = [hit, ~hit] if hit.any() and not hit.all() else None
             ref = ThetaReference(f.image, hist_mask=hm)
