@@ -62,16 +62,18 @@ def _trial(d: str) -> str:
 HERE = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
-def _diagnose(bag: str, processes: int, out: str, code: str = HERE) -> tuple:
-    """(wall time, document) of a fresh ``uw-sil diagnose`` of the checkout ``code``."""
+def diagnose_fresh(bag: str, processes, out: str, code: str = HERE) -> tuple:
+    """(wall time, document) of a fresh ``uw-sil diagnose`` of the checkout ``code`` (``--processes``
+    omitted when ``processes`` is None: the command's default). It runs beside ``out``: ``python -m`` puts the
+    working directory first on the path, where another checkout would shadow ``code``."""
     import json
     import subprocess
 
     env = dict(os.environ, PYTHONPATH=os.path.abspath(code))
+    more = [] if processes is None else ["--processes", str(processes)]
     t0 = time.perf_counter()
-    subprocess.run([sys.executable, "-m", "uw_sil.cli", "diagnose", "--bag", bag, "--json", out,
-                    "--processes", str(processes)], check=True, stdout=subprocess.DEVNULL, env=env,
-                   cwd=os.path.dirname(out))
+    subprocess.run([sys.executable, "-m", "uw_sil.cli", "diagnose", "--bag", bag, "--json", out, *more],
+                   check=True, stdout=subprocess.DEVNULL, env=env, cwd=os.path.dirname(out))
     dt = time.perf_counter() - t0
     with open(out) as f:
         return dt, json.load(f)
@@ -101,7 +103,7 @@ def main(argv=None) -> int:
                 for i, arm in enumerate((la, lb) if (rep + b) % 2 == 0 else (lb, la)):
                     load = os.getloadavg()[0]
                     p, code = arms[arm]
-                    dt, doc = _diagnose(bag, p, os.path.join(d, f"diag_{b}_{rep}_{i}.json"), code)
+                    dt, doc = diagnose_fresh(bag, p, os.path.join(d, f"diag_{b}_{rep}_{i}.json"), code)
                     times[arm].append(dt)
                     docs[arm] = without_times(doc)
                     steps = " ".join(f"{k.removesuffix('_s')} {v:.1f}" for k, v in doc["timing"].items()

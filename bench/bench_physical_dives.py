@@ -23,14 +23,16 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
+sys.path.insert(0, str(HERE))
+
+from bench_concealed import truth_of as trial_truth  # noqa: E402
+from bench_diagnose_speed import diagnose_fresh  # noqa: E402
 
 #: Concealed on top of the lamps, per seed.
 DIVES = {
@@ -47,25 +49,14 @@ DIVES = {
 
 
 def truth_of(seed: int) -> set:
-    return set(DIVES[seed]) | {"artificial_light"}
+    return set(trial_truth({"gen": "physical", "effects": DIVES[seed]}))
 
 
 def write_dive(seed: int, bag: Path) -> None:
-    sys.path.insert(0, str(HERE))
     from physical_effects import synth_physical
 
     bag.parent.mkdir(parents=True, exist_ok=True)
     synth_physical(str(bag), dict(DIVES[seed]), n_frames=8, seed=seed, width=640)
-
-
-def diagnose(bag: Path, out: Path, code: Path) -> float:
-    """``uw-sil diagnose`` of ``bag`` in a fresh process on the code of ``code``; its wall time."""
-    env = {**os.environ, "PYTHONPATH": str(code), "PYOPENGL_PLATFORM": "osmesa"}
-    t0 = time.perf_counter()
-    # (run beside the document, not here: `python -m` puts the working directory first on the path)
-    subprocess.run([sys.executable, "-m", "uw_sil.cli", "diagnose", "--bag", str(bag), "--frames", "8",
-                    "--json", str(out)], env=env, check=True, stdout=subprocess.DEVNULL, cwd=out.parent)
-    return time.perf_counter() - t0
 
 
 def score(seed: int, doc: dict) -> dict:
@@ -97,7 +88,7 @@ def main(argv=None) -> int:
             how = "document reused"
             if args.again or not js.exists():
                 how = f"load {os.getloadavg()[0]:.1f} before"
-                diagnose(bag, js, Path(args.code))
+                diagnose_fresh(str(bag), None, str(js), args.code)
             r = score(seed, json.loads(js.read_text()))
             rows.append(r)
             print(f"{seed}: right {r['right']}, missed {r['missed']}, false {r['false']}, held-out θ {r['theta']:.4f}, "
