@@ -1336,3 +1336,29 @@ def test_a_vignetting_falloff_of_1_over_the_whole_image_is_neutral():
     assert not judge.neutral(dead)                                          # without the camera: the defaults only
     assert not judge.neutral({**dead, "k2": -0.2}, cam)                     # the corners dimmed
     assert not judge.neutral({"k1": -0.01}, cam) and judge.neutral(get_effect("vignetting").defaults(), cam)
+
+
+@pytest.mark.parametrize("named", [False, True])
+def test_params_file_draws_the_camera_noise_once(tmp_path, named):
+    """The params file gives sim_camera the camera noise of the diagnosis once: one sigma from the open water
+    (``noise_sigma``), or the named sensor noise effect (``noise_sigma`` 0 then: sim_camera adds it on top of its
+    effects, and the noise would be drawn twice)."""
+    from types import SimpleNamespace
+
+    from uw_sil.fit.backward import read_params_yaml
+    from uw_sil.fit.diagnose import write_diagnosis_yaml
+
+    base = {"a_r": 0.41, "a_g": 0.12, "a_b": 0.09, "b_r": 0.06, "b_g": 0.31, "b_b": 0.43, "rho_f": 0.05}
+    structured = {"shot": 0.06, "read": 0.7, "corr": 0.6, "fpn": 0.0, "col": 0.0, "row": 0.0}
+    effects = {"artificial_light": {"power": 1.0}}
+    if named:
+        effects["sensor_noise"] = structured
+    diag = SimpleNamespace(final_params={"base": base, "effects": effects},
+                           final={"effects": list(effects)},
+                           noise={"camera_noise_dn_full_resolution": [[1.0, 2.0, 3.0], [1.0, 2.0, 3.0]]})
+    got = read_params_yaml(write_diagnosis_yaml(tmp_path / "ext.yaml", diag))
+    if not named:
+        assert got["noise_sigma"] == 2.0 and list(got["effects"]) == ["artificial_light"]
+    else:
+        assert got["noise_sigma"] == 0.0 and set(got["effects"]) == {"artificial_light", "sensor_noise"}
+        assert got["effects"]["sensor_noise"] == structured

@@ -1099,17 +1099,20 @@ def diagnose_bag(bag, k: int = 8, model=None, image_topic: str = "/camera/image_
 
 def write_diagnosis_yaml(path, diag: Diagnosis, node_name: str = "/**", fog: str = "exp2", comment: str = ""):
     """ROS 2 parameters file for ``sim_camera`` with the final (extended) model: base parameters, the
-    estimated camera noise, and ``<effect>.<param>`` of the accepted effects (a parameter ``effects``
-    lists them)."""
+    camera noise, and ``<effect>.<param>`` of the accepted effects (a parameter ``effects`` lists them).
+
+    The camera noise: where the sensor noise effect is named, the effect draws it (``noise_sigma`` 0:
+    sim_camera adds ``noise_sigma`` on top of its effects); else ``noise_sigma``, the constant sigma measured on
+    the recording's open water."""
     import yaml
 
     from .._shared.fileio import write_text_atomic
 
     p = dict(diag.final_params["base"])
     p["fog_mode"] = fog
+    eff = list(diag.final.get("effects", []))
     full = diag.noise.get("camera_noise_dn_full_resolution")
-    p["noise_sigma"] = float(np.mean(full)) if full else 0.0
-    eff = diag.final.get("effects", [])
+    p["noise_sigma"] = float(np.mean(full)) if full and "sensor_noise" not in eff else 0.0
     if eff:
         p["effects"] = ",".join(eff)
         for n in eff:
