@@ -146,8 +146,11 @@ def test_params_yaml_and_report(diagnoses):
     for name in ("index.html", "residuals.png", "signatures.png", "models.png", "heldout.png"):
         assert (d / "report" / name).stat().st_size > 1000
     doc = diagnoses["vignetting"]
-    assert (f"base {doc['base']['theta_heldout_simulated']:.4f} → final {doc['final']['theta_heldout_simulated']:.4f}"
-            in (d / "report" / "index.html").read_text())
+    page = (d / "report" / "index.html").read_text()
+    sim = doc["base"]["theta_heldout_simulated"], doc["final"]["theta_heldout_simulated"]
+    assert f"base {sim[0]:.4f} → final {sim[1]:.4f}" in page
+    assert doc["final"]["camera_noise"]["model"] in ("constant", "photon_transfer")     # the noise was refitted
+    assert f"held-out θ at full resolution {doc['final']['camera_noise']['delta_heldout_simulated']:+.4f}" in page
 
 
 def test_exit_codes(bags, tmp_path, capsys):
@@ -225,22 +228,29 @@ def near_frames(tmp_path_factory):
     return load_frames(bag, k=6)
 
 
-@pytest.mark.parametrize("corr, named", [(0.0, False), (0.6, True)])
-def test_noise_is_named_for_structure_beyond_shot_and_read_noise(near_frames, corr, named):
+@pytest.mark.parametrize("shot, read, corr, named, camera", [(0.4, 0.5, 0.0, False, "photon_transfer"),
+                                                               (0.4, 0.5, 0.6, True, None),
+                                                               (0.0, 1.5, 0.0, False, "constant")])
+def test_noise_is_named_for_structure_beyond_shot_and_read_noise(near_frames, shot, read, corr, named, camera):
     """Every camera's noise has photon shot noise and read noise; the noise judge compares the structured model
     with its own shot and read noise without the structure, and names structure beyond them. Recordings simulated with
     dark water (the lamp-lit deep sea's): white shot and read noise (a low-gain camera) is not a missing
     effect, and the photon transfer fit finds its gain; the same noise correlated over 0.6 px (demosaicing)
     is one. Measured: improvement -0.009 against a margin of 0.05 (white; the candidate's white twin 0.39 DN/DN,
-    0.57 DN), 1.52 against 0.26 (correlated, fitted 0.61 px)."""
+    0.57 DN), 1.52 against 0.26 (correlated, fitted 0.61 px).
+
+    Not named, the white fit is what sim_camera draws where it beats one constant sigma on held-out θ at full
+    resolution (:func:`~uw_sil.fit.judges.sensor_noise.camera_noise_choice`): for the shot-noise camera (measured
+    +0.035 against a margin of 0.004), not for a camera of constant noise (1.5 DN: the statistics of these dark
+    frames took shot noise 0.34 DN/DN for it, read 0.84 DN, and θ fell by 0.048)."""
     import dataclasses
 
     from uw_sil.fit.diagfit import EffectModel
-    from uw_sil.fit.judges.sensor_noise import noise_refit
+    from uw_sil.fit.judges.sensor_noise import camera_noise_choice, noise_refit
     from uw_sil.fit.residuals import reduce_frame
 
     base = [0.4, 0.12, 0.08, 0.01, 0.02, 0.02, 0.05]           # a_rgb, b_rgb (dark water), rho_f
-    noise = {"sensor_noise": {"shot": 0.4, "read": 0.5, "corr": corr, "fpn": 0.0, "col": 0.0, "row": 0.0}}
+    noise = {"sensor_noise": {"shot": shot, "read": read, "corr": corr, "fpn": 0.0, "col": 0.0, "row": 0.0}}
     model = EffectModel([reduce_frame(f, 1) for f in near_frames], ("sensor_noise",), values=noise,
                         free={"sensor_noise": ()}, seed=11)
     x = model.x0(base)[None]
@@ -252,8 +262,15 @@ def test_noise_is_named_for_structure_beyond_shot_and_read_noise(near_frames, co
     assert (st["improvement"] > st["margin"]) == named, (st["improvement"], st["margin"], fitted)
     if named:
         assert 0.4 < fitted["corr"] < 0.8, fitted
-    else:
+    elif shot > 0:
         assert 0.25 < st["photon_transfer"]["shot"] < 0.6 and st["photon_transfer"]["read"] < 1.0, st
+    if camera is not None:
+        choice = camera_noise_choice(st, seed=5)
+        assert choice["model"] == camera, choice
+        assert {k: choice["values"][k] for k in ("corr", "fpn", "col", "row")} == dict.fromkeys(
+            ("corr", "fpn", "col", "row"), 0.0)
+        assert (choice["values"]["shot"], choice["values"]["read"]) == (st["photon_transfer"]["shot"],
+                                                                      st["photon_transfer"]["read"])
 
 
 def test_a_model_is_scored_as_sim_camera_renders_it(bags):
@@ -1338,27 +1355,34 @@ def test_a_vignetting_falloff_of_1_over_the_whole_image_is_neutral():
     assert not judge.neutral({"k1": -0.01}, cam) and judge.neutral(get_effect("vignetting").defaults(), cam)
 
 
-@pytest.mark.parametrize("named", [False, True])
-def test_params_file_draws_the_camera_noise_once(tmp_path, named):
+@pytest.mark.parametrize("camera, named", [("constant", False), ("photon_transfer", False), (None, True)])
+def test_params_file_draws_the_camera_noise_once(tmp_path, camera, named):
     """The params file gives sim_camera the camera noise of the diagnosis once: one sigma from the open water
-    (``noise_sigma``), or the named sensor noise effect (``noise_sigma`` 0 then: sim_camera adds it on top of its
-    effects, and the noise would be drawn twice)."""
+    (``noise_sigma``), or the sensor noise effect, named or chosen as photon transfer (``noise_sigma`` 0 then:
+    sim_camera adds it on top of its effects, and the noise would be drawn twice)."""
     from types import SimpleNamespace
 
     from uw_sil.fit.backward import read_params_yaml
     from uw_sil.fit.diagnose import write_diagnosis_yaml
 
     base = {"a_r": 0.41, "a_g": 0.12, "a_b": 0.09, "b_r": 0.06, "b_g": 0.31, "b_b": 0.43, "rho_f": 0.05}
-    structured = {"shot": 0.06, "read": 0.7, "corr": 0.6, "fpn": 0.0, "col": 0.0, "row": 0.0}
+    white = {"shot": 0.06, "read": 0.7, "corr": 0.0, "fpn": 0.0, "col": 0.0, "row": 0.0}
+    structured = {**white, "corr": 0.6}
     effects = {"artificial_light": {"power": 1.0}}
     if named:
         effects["sensor_noise"] = structured
+        cn = {"model": "sensor_noise", "values": structured}
+    else:
+        cn = {"model": camera, "values": white, "delta_heldout_simulated": 0.006, "margin": 0.003}
+        if camera == "photon_transfer":
+            effects["sensor_noise"] = white
     diag = SimpleNamespace(final_params={"base": base, "effects": effects},
-                           final={"effects": list(effects)},
+                           final={"effects": ["artificial_light"] + (["sensor_noise"] if named else []),
+                                  "camera_noise": cn},
                            noise={"camera_noise_dn_full_resolution": [[1.0, 2.0, 3.0], [1.0, 2.0, 3.0]]})
     got = read_params_yaml(write_diagnosis_yaml(tmp_path / "ext.yaml", diag))
-    if not named:
+    if camera == "constant":
         assert got["noise_sigma"] == 2.0 and list(got["effects"]) == ["artificial_light"]
     else:
         assert got["noise_sigma"] == 0.0 and set(got["effects"]) == {"artificial_light", "sensor_noise"}
-        assert got["effects"]["sensor_noise"] == structured
+        assert got["effects"]["sensor_noise"] == (structured if named else white)

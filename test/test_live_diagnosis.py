@@ -102,6 +102,9 @@ def test_statuses_say_what_the_diagnosis_found():
     doc["base"]["theta_heldout_simulated"], doc["final"]["theta_heldout_simulated"] = 0.61, 0.83
     values = diagnostic_statuses(doc)[0]["values"]
     assert values["theta_heldout_simulated_base"] == "0.61" and values["theta_heldout_simulated_final"] == "0.83"
+    assert "camera_noise" not in values
+    doc["final"]["camera_noise"] = {"model": "photon_transfer", "values": {"shot": 0.06, "read": 0.7}}
+    assert diagnostic_statuses(doc)[0]["values"]["camera_noise"] == "photon_transfer"
     doc = _doc()
     doc["undecided"] = [{"effect": "vignetting", "round": 1, "delta_heldout": 0.04, "margin": 0.03,
                          "explanation": "vignetting: beat its margin in round 1 (...); then dropped (...)"}]

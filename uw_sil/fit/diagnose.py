@@ -54,9 +54,13 @@ JSON schema (``schema_version`` 1)::
                                                     # ("flat_bounds": parameters saturated on their bound)
      "selection":  [{"round", "model", "theta_heldout", "tried", "chosen", "time_s"}, ...],
      "base":       {"theta_train", "theta_heldout", "theta_heldout_simulated", "theta_report", "params", "doubts"},
-     "final":      {"theta_heldout", "theta_heldout_simulated", "theta_report", "effects", "params", "statistics"},
+     "final":      {"theta_heldout", "theta_heldout_simulated", "theta_report", "effects", "params", "statistics",
+                    "camera_noise"},
                                                     # theta_report: θ on the report frames (null: none)
                                                     # theta_heldout_simulated: theta_as_simulated()
+                                                    # camera_noise: what sim_camera draws, {"model": "constant" |
+                                                    # "photon_transfer" | "sensor_noise", "values", ...}
+                                                    # (judges.sensor_noise.camera_noise_choice)
      "mismatch":   {"regions": [{"kind", "name", "pixels", "rms", "mean", "rms_rgb", "share"}, ...]},
      "undecided":  [{"effect", "round", "model", "criterion", "strength", "delta_heldout", "margin", "last",
                      "explanation"}, ...],          # beat a margin, not in the final model: undecided_effects()
@@ -142,6 +146,13 @@ class Diagnosis:
             lines.append(f"verdict: {v['effect']} (confidence {v['confidence']:.2f}): {v['explanation']}")
         for u in self.undecided:
             lines.append(f"undecided, not named (the final model's effects explain it as well): {u['explanation']}")
+        cn = self.final.get("camera_noise") or {}
+        if cn.get("delta_heldout_simulated") is not None:
+            v = cn["values"]
+            lines.append("camera noise for sim_camera: " + (
+                "photon transfer" if cn["model"] == "photon_transfer" else "one sigma from the open water")
+                + f" (white shot {v['shot']:.3f} DN/DN and read {v['read']:.2f} DN against one sigma: held-out θ "
+                f"at full resolution {cn['delta_heldout_simulated']:+.4f}, margin {cn['margin']:.4f})")
         if self.final.get("theta_report") is not None:
             n = sum(f["role"] == "report" for f in self.frames)
             lines.append(f"on {n} report frame(s) that no fit or choice saw: θ {self.base['theta_report']:.4f} (base) "
@@ -751,6 +762,7 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
     from .judges import JUDGES, Current, Job, margin_for
     from .judges.base import (current_ls, gain_words, least_squares_model, polish_blocks, residual_gain,
                               residual_improvement, with_effect)
+    from .judges.sensor_noise import camera_noise_choice
     from .residuals import added_surface
     from .screening import screen_proxies
     from .signatures import SignatureContext, run_signatures
@@ -1010,6 +1022,14 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
     for a in accepted:
         if JUDGES[a["effect"]].kind == "statistic":
             eff_values[a["effect"]] = dict(a["refit"].params["effects"][a["effect"]])
+    # the camera's own noise in sim_camera: the named noise model, else photon transfer where it beats one sigma
+    camera_noise = ({"model": "sensor_noise", "values": eff_values["sensor_noise"]} if "sensor_noise" in final_effects
+                    else camera_noise_choice(getattr(stat_results.get("sensor_noise"), "statistic", None), seed))
+    if camera_noise["model"] == "photon_transfer":
+        eff_values["sensor_noise"] = dict(camera_noise["values"])
+        say(f"camera noise for sim_camera: photon transfer, shot {camera_noise['values']['shot']:.3f} DN/DN, read "
+            f"{camera_noise['values']['read']:.2f} DN (held-out θ at full resolution "
+            f"{camera_noise['delta_heldout_simulated']:+.4f} over one sigma, margin {camera_noise['margin']:.4f})")
     final_params = {"base": {k: float(v) for k, v in zip(RGB_NAMES, current.base)}, "effects": eff_values}
     verdict = []
     for a in accepted:
@@ -1036,6 +1056,8 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
     t0 = time.perf_counter()
     drawn = {e: current.values[e] for e in current.effects}
     drawn.update({a["effect"]: eff_values[a["effect"]] for a in accepted if JUDGES[a["effect"]].kind == "statistic"})
+    if camera_noise["model"] == "photon_transfer":
+        drawn["sensor_noise"] = eff_values["sensor_noise"]
     as_sim = {"base": theta_as_simulated(held_f, R_hi, base_params["base"], {}, fog, seed + 50),
               "final": theta_as_simulated(job.sel_f, job.R_hi, final_params["base"], drawn, fog, seed + 50)}
     timing["as_simulated_s"] = time.perf_counter() - t0
@@ -1065,7 +1087,7 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
         final={"theta_heldout": final_theta, "theta_heldout_simulated": float(as_sim["final"].mean()),
                "residual_heldout": float(np.mean(current.ls_sel_E)),
                "theta_report": _mean_or_none(report["final"]),
-               "effects": final_effects, "params": _flat(final_params),
+               "effects": final_effects, "params": _flat(final_params), "camera_noise": camera_noise,
                "statistics": {a["effect"]: a["refit"].statistic for a in accepted
                               if JUDGES[a["effect"]].kind == "statistic"}},
         mismatch=mismatch,
@@ -1101,9 +1123,10 @@ def write_diagnosis_yaml(path, diag: Diagnosis, node_name: str = "/**", fog: str
     """ROS 2 parameters file for ``sim_camera`` with the final (extended) model: base parameters, the
     camera noise, and ``<effect>.<param>`` of the accepted effects (a parameter ``effects`` lists them).
 
-    The camera noise: where the sensor noise effect is named, the effect draws it (``noise_sigma`` 0:
-    sim_camera adds ``noise_sigma`` on top of its effects); else ``noise_sigma``, the constant sigma measured on
-    the recording's open water."""
+    The camera noise (``final["camera_noise"]``): where the sensor noise effect is named, or photon transfer was
+    chosen for it (:func:`~uw_sil.fit.judges.sensor_noise.camera_noise_choice`), the effect ``sensor_noise``
+    draws it (listed in ``effects`` then, ``noise_sigma`` 0: sim_camera adds ``noise_sigma`` on top of its
+    effects); else ``noise_sigma``, the constant sigma measured on the recording's open water."""
     import yaml
 
     from .._shared.fileio import write_text_atomic
@@ -1111,6 +1134,8 @@ def write_diagnosis_yaml(path, diag: Diagnosis, node_name: str = "/**", fog: str
     p = dict(diag.final_params["base"])
     p["fog_mode"] = fog
     eff = list(diag.final.get("effects", []))
+    if diag.final.get("camera_noise", {}).get("model") == "photon_transfer" and "sensor_noise" not in eff:
+        eff.append("sensor_noise")
     full = diag.noise.get("camera_noise_dn_full_resolution")
     p["noise_sigma"] = float(np.mean(full)) if full and "sensor_noise" not in eff else 0.0
     if eff:

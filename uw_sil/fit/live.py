@@ -116,6 +116,8 @@ def diagnostic_statuses(doc: dict, node: str = "backward_fit") -> list:
     summary_values = {"theta_heldout_base": base["theta_heldout"], "theta_heldout_final": final["theta_heldout"],
                       "effects": ",".join(final.get("effects", [])) or "none",
                       "time_s": doc.get("timing", {}).get("total_s", float("nan"))}
+    if final.get("camera_noise"):                              # what sim_camera draws as the camera's noise
+        summary_values["camera_noise"] = final["camera_noise"]["model"]
     if final.get("theta_heldout_simulated") is not None:       # as sim_camera renders the models
         summary_values.update(theta_heldout_simulated_base=base["theta_heldout_simulated"],
                               theta_heldout_simulated_final=final["theta_heldout_simulated"])
