@@ -6,7 +6,8 @@ on, so ``artificial_light`` is in every truth) with the effects below concealed 
 chosen once to mix mild and strong, single and several effects and one dive with nothing but the lamps (405).
 Each dive (8 frames, 640x480) is written, diagnosed in a fresh process from the bag alone (``uw-sil diagnose
 --bag B --json J``; the truth stays in this script) and scored: effects named right, missed and named falsely,
-the lamps, the final model's held-out θ, the time.
+the lamps, the final model's held-out θ (as fitted, and as ``sim_camera`` renders it with the params file:
+``theta_heldout_simulated``), the camera noise it draws, the time.
 
 Bags and documents go to ``--out-dir`` (default a temporary directory); with a directory, a dive whose document
 is there is scored again, not diagnosed again (``--again`` diagnoses it anyway), so a run can be resumed and
@@ -16,7 +17,7 @@ two checkouts compared on the same bags (``--code DIR``: the checkout to diagnos
 
 A dive takes 2-4 minutes on the 2-core machine (about 20 minutes for nine, quiet). Last line::
 
-    physical dives: named R/T right, F false, lamps L/N, mean held-out θ X, dives=N
+    physical dives: named R/T right, F false, lamps L/N, mean held-out θ X (as simulated Y), dives=N
 """
 from __future__ import annotations
 
@@ -64,6 +65,8 @@ def score(seed: int, doc: dict) -> dict:
     truth = truth_of(seed)
     return {"seed": seed, "right": sorted(named & truth), "missed": sorted(truth - named),
             "false": sorted(named - truth), "theta": float(doc["final"]["theta_heldout"]),
+            "theta_sim": float(doc["final"].get("theta_heldout_simulated") or float("nan")),
+            "camera_noise": (doc["final"].get("camera_noise") or {}).get("model", "constant"),
             "time_s": float(doc.get("timing", {}).get("total_s", float("nan")))}
 
 
@@ -92,14 +95,16 @@ def main(argv=None) -> int:
             r = score(seed, json.loads(js.read_text()))
             rows.append(r)
             print(f"{seed}: right {r['right']}, missed {r['missed']}, false {r['false']}, held-out θ {r['theta']:.4f}, "
-                  f"{r['time_s']:.0f} s ({how})", flush=True)
+                  f"as simulated {r['theta_sim']:.4f} (camera noise: {r['camera_noise']}), {r['time_s']:.0f} s "
+                  f"({how})", flush=True)
     right = sum(len(r["right"]) for r in rows)
     total = sum(len(truth_of(r["seed"])) for r in rows)
     false = sum(len(r["false"]) for r in rows)
     lamps = sum("artificial_light" in r["right"] for r in rows)
     theta = sum(r["theta"] for r in rows) / len(rows)
+    theta_sim = sum(r["theta_sim"] for r in rows) / len(rows)
     print(f"physical dives: named {right}/{total} right, {false} false, lamps {lamps}/{len(rows)}, "
-          f"mean held-out θ {theta:.4f}, dives={len(rows)}")
+          f"mean held-out θ {theta:.4f} (as simulated {theta_sim:.4f}), dives={len(rows)}")
     return 0
 
 
