@@ -1380,7 +1380,10 @@ def test_params_file_draws_the_camera_noise_once(tmp_path, camera, named):
                            final={"effects": ["artificial_light"] + (["sensor_noise"] if named else []),
                                   "camera_noise": cn},
                            noise={"camera_noise_dn_full_resolution": [[1.0, 2.0, 3.0], [1.0, 2.0, 3.0]]})
-    got = read_params_yaml(write_diagnosis_yaml(tmp_path / "ext.yaml", diag))
+    path = write_diagnosis_yaml(tmp_path / "ext.yaml", diag, comment="a diagnosis")
+    got = read_params_yaml(path)
+    assert path.read_text().startswith("# a diagnosis\n")
+    assert ("# camera noise: photon transfer" in path.read_text()) == (camera == "photon_transfer")
     if camera == "constant":
         assert got["noise_sigma"] == 2.0 and list(got["effects"]) == ["artificial_light"]
     else:

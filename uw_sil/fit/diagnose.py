@@ -1134,8 +1134,13 @@ def write_diagnosis_yaml(path, diag: Diagnosis, node_name: str = "/**", fog: str
     p = dict(diag.final_params["base"])
     p["fog_mode"] = fog
     eff = list(diag.final.get("effects", []))
-    if diag.final.get("camera_noise", {}).get("model") == "photon_transfer" and "sensor_noise" not in eff:
+    cn = diag.final.get("camera_noise") or {}
+    if cn.get("model") == "photon_transfer" and "sensor_noise" not in eff:
         eff.append("sensor_noise")
+        pt = cn["values"]
+        comment = "\n".join([comment] * bool(comment) + [
+            f"camera noise: photon transfer, the effect sensor_noise without structure (shot {pt['shot']:.3f} DN/DN, "
+            f"read {pt['read']:.2f} DN; not a named effect)"])
     full = diag.noise.get("camera_noise_dn_full_resolution")
     p["noise_sigma"] = float(np.mean(full)) if full and "sensor_noise" not in eff else 0.0
     if eff:
