@@ -146,13 +146,11 @@ class Diagnosis:
             lines.append(f"verdict: {v['effect']} (confidence {v['confidence']:.2f}): {v['explanation']}")
         for u in self.undecided:
             lines.append(f"undecided, not named (the final model's effects explain it as well): {u['explanation']}")
-        cn = self.final.get("camera_noise") or {}
-        if cn.get("delta_heldout_simulated") is not None:
-            v = cn["values"]
-            lines.append("camera noise for sim_camera: " + (
-                "photon transfer" if cn["model"] == "photon_transfer" else "one sigma from the open water")
-                + f" (white shot {v['shot']:.3f} DN/DN and read {v['read']:.2f} DN against one sigma: held-out θ "
-                f"at full resolution {cn['delta_heldout_simulated']:+.4f}, margin {cn['margin']:.4f})")
+        from .judges.sensor_noise import camera_noise_words
+
+        words = camera_noise_words(self.final.get("camera_noise"))
+        if words:
+            lines.append(f"camera noise for sim_camera: {words}")
         if self.final.get("theta_report") is not None:
             n = sum(f["role"] == "report" for f in self.frames)
             lines.append(f"on {n} report frame(s) that no fit or choice saw: θ {self.base['theta_report']:.4f} (base) "
@@ -762,7 +760,7 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
     from .judges import JUDGES, Current, Job, margin_for
     from .judges.base import (current_ls, gain_words, least_squares_model, polish_blocks, residual_gain,
                               residual_improvement, with_effect)
-    from .judges.sensor_noise import camera_noise_choice
+    from .judges.sensor_noise import camera_noise_choice, camera_noise_words
     from .residuals import added_surface
     from .screening import screen_proxies
     from .signatures import SignatureContext, run_signatures
@@ -1027,9 +1025,8 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
                     else camera_noise_choice(getattr(stat_results.get("sensor_noise"), "statistic", None), seed))
     if camera_noise["model"] == "photon_transfer":
         eff_values["sensor_noise"] = dict(camera_noise["values"])
-        say(f"camera noise for sim_camera: photon transfer, shot {camera_noise['values']['shot']:.3f} DN/DN, read "
-            f"{camera_noise['values']['read']:.2f} DN (held-out θ at full resolution "
-            f"{camera_noise['delta_heldout_simulated']:+.4f} over one sigma, margin {camera_noise['margin']:.4f})")
+    if camera_noise_words(camera_noise):
+        say(f"camera noise for sim_camera: {camera_noise_words(camera_noise)}")
     final_params = {"base": {k: float(v) for k, v in zip(RGB_NAMES, current.base)}, "effects": eff_values}
     verdict = []
     for a in accepted:

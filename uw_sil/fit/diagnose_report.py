@@ -216,6 +216,8 @@ def _fmt(v):
 
 def write_diagnosis_report(diag, out_dir, title: str = "uw_sil mismatch diagnosis") -> Path:
     """Write the figures and ``index.html`` into ``out_dir``; returns the page's path."""
+    from .judges.sensor_noise import camera_noise_words
+
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     figs = {"residuals.png": residual_figure, "signatures.png": signature_figure, "models.png": models_figure,
@@ -240,13 +242,9 @@ def write_diagnosis_report(diag, out_dir, title: str = "uw_sil mismatch diagnosi
         parts.append(f"<p>held-out θ as <code>sim_camera</code> renders the models (at the recording's resolution, "
                      f"their noise and particles drawn): base {d['base']['theta_heldout_simulated']:.4f} → final "
                      f"{d['final']['theta_heldout_simulated']:.4f}</p>")
-    cn = d["final"].get("camera_noise") or {}
-    if cn.get("delta_heldout_simulated") is not None:
-        parts.append(f"<p>camera noise <code>sim_camera</code> draws: <b>"
-                     + ("photon transfer" if cn["model"] == "photon_transfer" else "one sigma from the open water")
-                     + f"</b> (white shot {cn['values']['shot']:.3f} DN/DN and read {cn['values']['read']:.2f} DN "
-                     f"against one sigma: held-out θ at full resolution {cn['delta_heldout_simulated']:+.4f}, margin "
-                     f"{cn['margin']:.4f})</p>")
+    noise_words = camera_noise_words(d["final"].get("camera_noise"))
+    if noise_words:
+        parts.append(f"<p>camera noise <code>sim_camera</code> draws: {html.escape(noise_words)}</p>")
     if d["final"].get("theta_report") is not None:
         rep = [f["index"] for f in d["frames"] if f["role"] == "report"]
         parts.append(f"<p>on the report frames {rep}, which no fit and no choice saw: θ base "

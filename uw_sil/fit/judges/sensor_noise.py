@@ -271,6 +271,17 @@ def camera_noise_choice(statistic: Optional[dict], seed: int = 0) -> dict:
             "delta_heldout_simulated": float(gain.mean()), "per_frame": gain.tolist(), "margin": float(margin)}
 
 
+def camera_noise_words(choice: dict) -> Optional[str]:
+    """The camera noise ``sim_camera`` draws, in words with its evidence (:func:`camera_noise_choice`; None
+    where there was no choice to make: a named noise model, or none refitted)."""
+    if not choice or choice.get("delta_heldout_simulated") is None:
+        return None
+    v = choice["values"]
+    return (("photon transfer" if choice["model"] == "photon_transfer" else "one sigma from the open water")
+            + f" (white shot {v['shot']:.3f} DN/DN and read {v['read']:.2f} DN against one sigma: held-out θ at "
+            f"full resolution {choice['delta_heldout_simulated']:+.4f}, margin {choice['margin']:.4f})")
+
+
 class SensorNoiseJudge(Judge):
     effect = "sensor_noise"
     free = ("shot", "read", "corr", "fpn", "col", "row")
