@@ -1025,8 +1025,9 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
                     else camera_noise_choice(getattr(stat_results.get("sensor_noise"), "statistic", None), seed))
     if camera_noise["model"] == "photon_transfer":
         eff_values["sensor_noise"] = dict(camera_noise["values"])
-    if camera_noise_words(camera_noise):
-        say(f"camera noise for sim_camera: {camera_noise_words(camera_noise)}")
+    noise_words = camera_noise_words(camera_noise)
+    if noise_words:
+        say(f"camera noise for sim_camera: {noise_words}")
     final_params = {"base": {k: float(v) for k, v in zip(RGB_NAMES, current.base)}, "effects": eff_values}
     verdict = []
     for a in accepted:

@@ -23,6 +23,11 @@ from ..diagfit import EffectModel
 from ..residuals import reduce_frame
 from .base import Judge, Refit, bootstrap_se, margin_for
 
+#: The parameters of the noise model beyond photon transfer (shot and read noise): its structure, zero in the
+#: white model.
+STRUCTURE = ("corr", "fpn", "col", "row")
+
+
 def _noise_vector(st: dict) -> np.ndarray:
     """Comparable noise statistics: log water sigma, lag ratio, log fixed-pattern ratios, log object sigma."""
     so = st["sigma_object"]
@@ -186,7 +191,7 @@ def noise_refit(fit_f, held_f, base_x, sig, fog, seed, ref_held_pf, base_theta_t
         # than the white fit chosen on the fit frames (0.44 DN) by 0.078 against a margin of 0.05: its read
         # noise made the difference, not its structure
         twin = x.copy()
-        twin[[model.names.index(f"sensor_noise.{p}") for p in ("corr", "fpn", "col", "row")]] = 0.0
+        twin[[model.names.index(f"sensor_noise.{p}") for p in STRUCTURE]] = 0.0
         f_twin = float(total(twin[None])[0])
         if f_twin >= f_full:
             x, f_full = twin, f_twin
@@ -265,8 +270,7 @@ def camera_noise_choice(statistic: Optional[dict], seed: int = 0) -> dict:
     gain = (np.asarray(statistic["theta_full_res_white"], float)
             - np.asarray(statistic["theta_full_res_base"], float))
     margin = margin_for(gain, 1, seed=seed)
-    values = {**get_effect("sensor_noise").defaults(), **statistic["photon_transfer"],
-              "corr": 0.0, "fpn": 0.0, "col": 0.0, "row": 0.0}
+    values = {**get_effect("sensor_noise").defaults(), **statistic["photon_transfer"], **dict.fromkeys(STRUCTURE, 0.0)}
     return {"model": "photon_transfer" if float(gain.mean()) > margin else "constant", "values": values,
             "delta_heldout_simulated": float(gain.mean()), "per_frame": gain.tolist(), "margin": float(margin)}
 
