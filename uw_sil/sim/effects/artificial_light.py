@@ -410,9 +410,19 @@ class ArtificialLight(Effect):
             return vis
         f = g["sub"]
         h, w = g["z"].shape[0] // f, g["z"].shape[1] // f
-        hit = g["hit_blocks"]
-        lit = np.where(g["hit"], vis, np.float32(0)).reshape(h, f, w, f).sum(axis=(1, 3), dtype=np.float32)
-        return np.where(hit > 0, lit / np.maximum(hit, 1), np.float32(1.0)).astype(np.float32)
+        out = np.ones((h, w), np.float32)
+        # only the blocks around the shadows are averaged: elsewhere every hit pixel is lit, and the mean is 1
+        dark = vis < 1
+        rows, cols = np.flatnonzero(dark.any(axis=1)), np.flatnonzero(dark.any(axis=0))
+        if rows.size == 0:
+            return out
+        r0, r1, c0, c1 = rows[0] // f, rows[-1] // f + 1, cols[0] // f, cols[-1] // f + 1
+        box = np.s_[r0 * f:r1 * f, c0 * f:c1 * f]
+        hit = g["hit_blocks"][r0:r1, c0:c1]
+        lit = np.where(g["hit"][box], vis[box], np.float32(0)).reshape(r1 - r0, f, c1 - c0, f).sum(
+            axis=(1, 3), dtype=np.float32)
+        out[r0:r1, c0:c1] = np.where(hit > 0, lit / np.maximum(hit, 1), np.float32(1.0))
+        return out
 
     def veil_field(self, st, rig: LampRig, a, strength: float) -> np.ndarray:
         """(3, H, W) lamp-lit backscatter (linear in ``strength``)."""
