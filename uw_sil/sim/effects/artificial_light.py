@@ -410,17 +410,22 @@ class ArtificialLight(Effect):
             return vis
         f = g["sub"]
         h, w = g["z"].shape[0] // f, g["z"].shape[1] // f
+        if f != 2:
+            lit = np.where(g["hit"], vis, np.float32(0)).reshape(h, f, w, f).sum(axis=(1, 3), dtype=np.float32)
+            hit = g["hit_blocks"]
+            return np.where(hit > 0, lit / np.maximum(hit, 1), np.float32(1.0)).astype(np.float32)
         out = np.ones((h, w), np.float32)
-        # only the blocks around the shadows are averaged: elsewhere every hit pixel is lit, and the mean is 1
+        # only the 2x2 blocks around the shadows are averaged: elsewhere every hit pixel is lit, and the mean is 1
+        # (the sum in the order numpy's sum over a whole grid takes, (top pair) + (bottom pair), which it does
+        # not keep on a part of one)
         dark = vis < 1
         rows, cols = np.flatnonzero(dark.any(axis=1)), np.flatnonzero(dark.any(axis=0))
         if rows.size == 0:
             return out
-        r0, r1, c0, c1 = rows[0] // f, rows[-1] // f + 1, cols[0] // f, cols[-1] // f + 1
-        box = np.s_[r0 * f:r1 * f, c0 * f:c1 * f]
+        r0, r1, c0, c1 = rows[0] // 2, rows[-1] // 2 + 1, cols[0] // 2, cols[-1] // 2 + 1
+        q = np.where(g["hit"][2 * r0:2 * r1, 2 * c0:2 * c1], vis[2 * r0:2 * r1, 2 * c0:2 * c1], np.float32(0))
+        lit = (q[0::2, 0::2] + q[0::2, 1::2]) + (q[1::2, 0::2] + q[1::2, 1::2])
         hit = g["hit_blocks"][r0:r1, c0:c1]
-        lit = np.where(g["hit"][box], vis[box], np.float32(0)).reshape(r1 - r0, f, c1 - c0, f).sum(
-            axis=(1, 3), dtype=np.float32)
         out[r0:r1, c0:c1] = np.where(hit > 0, lit / np.maximum(hit, 1), np.float32(1.0))
         return out
 
