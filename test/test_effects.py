@@ -265,6 +265,46 @@ def test_the_shadow_test_skips_only_points_it_would_find_lit(frames, renderer):
     assert shadowed > 100                                    # the comparison saw shadows
 
 
+def test_shadows_on_a_reduced_frame_are_the_mean_over_each_block_bit_for_bit(frames, renderer, monkeypatch):
+    """On a reduced frame the shadow test runs on the finer grid and each block gets the mean over its hit pixels.
+    The code sums only the blocks around the shadows (elsewhere the mean is 1): that must give exactly the mean
+    the whole grid's sum gives (numpy sums a part of a grid one block wide in another order; a last-bit difference
+    changed a diagnosis's fitted lamp offset in its 4th digit), for many lamp positions on the panel renders and
+    on two block scenes, and for shadow maps of soft values in boxes of every width and height up to 6 blocks."""
+    import uw_sil.sim.effects.artificial_light as al
+    from uw_sil.sim.effects.artificial_light import ArtificialLight, _shadow_grid, _visibility_on
+    from uw_sil.sim.model import Geometry
+
+    geoms = [Geometry.from_render(rr, renderer.camera, T) for T, rr in frames.values()]
+    cam2 = CameraModel.from_fov(320, 240, 70.0)
+    geoms += [_block_scene(cam2)[0], _block_scene(cam2, z_block=1.4)[0]]
+    rng = np.random.default_rng(0)
+    soft = 0
+    for geom in geoms:
+        g = _shadow_grid(geom)                   # the full grid, seen as the finer grid of a half-size frame
+        h, w = g["z"].shape[0] // 2, g["z"].shape[1] // 2
+        g = dict(g, sub=2, hit_blocks=g["hit"].reshape(h, 2, w, 2).sum(axis=(1, 3), dtype=np.float32))
+        for L in rng.uniform((-1.2, -0.8, -0.1), (1.2, 0.8, 0.1), (40, 3)).astype(np.float32):
+            vis = _visibility_on(g, L)
+            lit = np.where(g["hit"], vis, np.float32(0)).reshape(h, 2, w, 2).sum(axis=(1, 3), dtype=np.float32)
+            want = np.where(g["hit_blocks"] > 0, lit / np.maximum(g["hit_blocks"], 1), np.float32(1)).astype(
+                np.float32)
+            got = ArtificialLight._visibility({"shadow": g}, L)
+            np.testing.assert_array_equal(got, want)
+            soft += int(((want > 0) & (want < 1)).sum())
+    assert soft > 1000                                   # blocks partly in shadow were compared
+    # shadow maps in boxes of each size (soft values k/9 as the 3x3 soft edges give), at random places
+    for bh in range(1, 7):
+        for bw in range(1, 7):
+            vis = np.ones(g["z"].shape, np.float32)
+            r, c = 2 * rng.integers(0, h - bh), 2 * rng.integers(0, w - bw)
+            vis[r:r + 2 * bh, c:c + 2 * bw] = rng.integers(0, 10, (2 * bh, 2 * bw)) / np.float32(9)
+            monkeypatch.setattr(al, "_visibility_on", lambda g, L, vis=vis: vis)
+            lit = np.where(g["hit"], vis, np.float32(0)).reshape(h, 2, w, 2).sum(axis=(1, 3), dtype=np.float32)
+            want = np.where(g["hit_blocks"] > 0, lit / np.maximum(g["hit_blocks"], 1), np.float32(1))
+            np.testing.assert_array_equal(ArtificialLight._visibility({"shadow": g}, None), want)
+
+
 def test_artificial_light_tilt_aims_the_beam_below_the_optical_axis():
     """``tilt`` pitches the beam axes (y down): on a wall 2 m ahead, one narrow lamp beside the camera lights the
     wall brightest where its axis meets it, ``2 tan(tilt)`` below the lamp's height, i.e. ``fy tan(tilt)`` pixels
