@@ -377,25 +377,33 @@ class ArtificialLight(Effect):
 
     def _irradiance(self, st, rig: LampRig, a) -> np.ndarray:
         """(3, H, W) ``E_c`` of the module's formula (power, fill and tint not applied)."""
-        X, n = st["X"], st["n"]
+        # on the pixels that see a surface only (the others are given no lamp light, :meth:`illumination`)
         h, w = st["X2"].shape
-        E = np.zeros((3, h, w), np.float32)
+        idx = st.get("hit_idx")
+        if idx is None:
+            idx = st["hit_idx"] = np.flatnonzero(st["hit"])
+            st["hit_planes"] = {k: [np.ascontiguousarray(v.ravel()[idx]) for v in st[k]] for k in ("X", "n")}
+            st["hit_planes"].update({k: np.ascontiguousarray(st[k].ravel()[idx]) for k in ("X2", "nX")})
+        P = st["hit_planes"]
+        X, n = P["X"], P["n"]
+        E = np.zeros((3, h * w), np.float32)
         for l, wl in rig.weights:
             L, ax = rig.pos[l], rig.axis[l]
             XL = X[0] * L[0] + X[1] * L[1] + X[2] * L[2]
-            R2 = st["X2"] - 2 * XL + np.float32(L @ L)
+            R2 = P["X2"] - 2 * XL + np.float32(L @ L)
             R = np.sqrt(np.maximum(R2, np.float32(1e-4)))
             cos_t = (X[0] * ax[0] + X[1] * ax[1] + X[2] * ax[2] - np.float32(L @ ax)) / R
             nL = n[0] * L[0] + n[1] * L[1] + n[2] * L[2]
-            lamb = np.clip((nL - st["nX"]) / R, 0.0, 1.0)        # n . (L - X) / R
+            lamb = np.clip((nL - P["nX"]) / R, 0.0, 1.0)        # n . (L - X) / R
             g = np.float32(wl * R0 * R0) * rig.beam(cos_t) * lamb / (R * R)
             # the shadows of a lamp position rounded to SHADOW_GRID, kept for many positions: a fit's candidates
             # share them
             Lq = np.round(L / np.float32(SHADOW_GRID)) * np.float32(SHADOW_GRID)
-            g *= self._cached(st, "_S", tuple(map(float, Lq)), lambda: self._visibility(st, Lq), entries=64)
+            S = self._cached(st, "_S", tuple(map(float, Lq)), lambda: self._visibility(st, Lq), entries=64)
+            g *= S.ravel()[idx]
             for c in range(3):
-                E[c] += g * np.exp(-np.float32(a[c]) * (R - np.float32(R0)))
-        return E
+                E[c, idx] += g * np.exp(-np.float32(a[c]) * (R - np.float32(R0)))
+        return E.reshape(3, h, w)
 
     @staticmethod
     def _visibility(st, L) -> np.ndarray:
