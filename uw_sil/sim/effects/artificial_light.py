@@ -310,11 +310,13 @@ class ArtificialLight(Effect):
         X = geom.X
         n = geom.normals
         st = {"hit": hit, "nohit": ~hit[None]}
-        # surface terms as planes: |X - L|^2 = |X|^2 - 2 X.L + |L|^2, n.(X - L) = n.X - n.L
+        # surface terms as planes: |X - L|^2 = |X|^2 - 2 X.L + |L|^2, n.(X - L) = n.X - n.L; the light on surfaces
+        # is computed on the pixels that see one only (the others get no lamp light, :meth:`illumination`)
         st["X"] = [np.ascontiguousarray(X[..., k]) for k in range(3)]
-        st["n"] = [np.ascontiguousarray(n[..., k]) for k in range(3)]
-        st["X2"] = np.einsum("hwk,hwk->hw", X, X)
-        st["nX"] = np.einsum("hwk,hwk->hw", n, X)
+        idx = st["hit_idx"] = np.flatnonzero(hit)
+        st["on_hit"] = {"X": [v.ravel()[idx] for v in st["X"]], "n": [n[..., k].ravel()[idx] for k in range(3)],
+                        "X2": np.einsum("hwk,hwk->hw", X, X).ravel()[idx],
+                        "nX": np.einsum("hwk,hwk->hw", n, X).ravel()[idx]}
         # cast shadows: built on the first shadow test (the geometry, or its finer view, see _shadow_grid)
         st["geom"] = geom
         # veil: a coarse grid of unit viewing directions and log-spaced distances along them
@@ -377,14 +379,8 @@ class ArtificialLight(Effect):
 
     def _irradiance(self, st, rig: LampRig, a) -> np.ndarray:
         """(3, H, W) ``E_c`` of the module's formula (power, fill and tint not applied)."""
-        # on the pixels that see a surface only (the others are given no lamp light, :meth:`illumination`)
-        h, w = st["X2"].shape
-        idx = st.get("hit_idx")
-        if idx is None:
-            idx = st["hit_idx"] = np.flatnonzero(st["hit"])
-            st["hit_planes"] = {k: [np.ascontiguousarray(v.ravel()[idx]) for v in st[k]] for k in ("X", "n")}
-            st["hit_planes"].update({k: np.ascontiguousarray(st[k].ravel()[idx]) for k in ("X2", "nX")})
-        P = st["hit_planes"]
+        h, w = st["hit"].shape
+        idx, P = st["hit_idx"], st["on_hit"]
         X, n = P["X"], P["n"]
         E = np.zeros((3, h * w), np.float32)
         for l, wl in rig.weights:
