@@ -66,7 +66,7 @@ def score(seed: int, doc: dict) -> dict:
     return {"seed": seed, "right": sorted(named & truth), "missed": sorted(truth - named),
             "false": sorted(named - truth), "theta": float(doc["final"]["theta_heldout"]),
             "theta_sim": float(doc["final"].get("theta_heldout_simulated") or float("nan")),
-            "camera_noise": (doc["final"].get("camera_noise") or {}).get("model", "constant"),
+            "camera_noise": (doc["final"].get("camera_noise") or {}).get("model", "not recorded"),
             "time_s": float(doc.get("timing", {}).get("total_s", float("nan")))}
 
 
