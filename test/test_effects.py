@@ -620,6 +620,50 @@ def test_unmodeled_geometry_adds_a_floor_below(frames, renderer):
         model.degrade(rr, cam)
 
 
+def test_the_seafloor_texture_pyramid_is_built_once_when_threads_ask_for_it_together(monkeypatch):
+    """The first seafloor simulations of a process can run on several threads (θ of a candidate batch). Each
+    thread that found the mip pyramid unbuilt appended its own levels to the module's list: 14 levels instead
+    of 7, the wrong level for every pixel footprint from then on, and a diagnosis refitted the seafloor to
+    other values on two threads than on one (held-out evidence and confidences moved with the core count).
+    Here every thread is held inside the texture's construction until the others have arrived there too (or
+    0.5 s have passed: with the build under a lock, they cannot arrive), so the unguarded build fails every
+    time; each thread must get the same complete pyramid."""
+    import threading
+
+    import uw_sil.sim.effects.unmodeled_geometry as ug
+    import uw_sil.sim.scene as scene
+
+    real = scene.seafloor_texture
+    inside = threading.Barrier(4, timeout=0.5)
+
+    def slow_texture(*a, **k):
+        try:
+            inside.wait()
+        except threading.BrokenBarrierError:
+            pass
+        return real(*a, **k)
+
+    monkeypatch.setattr(scene, "seafloor_texture", slow_texture)
+    monkeypatch.setattr(ug, "_mips", type(ug._mips)())
+    start = threading.Barrier(4)
+    got = [None] * 4
+
+    def ask(i):
+        start.wait()
+        got[i] = ug._texture_mips()
+
+    threads = [threading.Thread(target=ask, args=(i,)) for i in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    sizes = [[m.shape[0] for m in g] for g in got]
+    assert sizes[0] == [ug.TEX_SIZE // 2 ** L + 2 for L in range(7)], sizes[0]
+    assert all(s == sizes[0] for s in sizes), sizes
+    assert all(g is got[0] for g in got)
+    assert len(ug._texture_mips()) == 7
+
+
 @pytest.mark.parametrize("name", sorted(NAMES))
 def test_mild_subtle_strong_stronger(name, frames, renderer):
     cam = renderer.camera

@@ -14,6 +14,7 @@ the image bottom, plus range/colour changes. ``restore`` treats the floor as an 
 from __future__ import annotations
 
 import math
+import threading
 
 import cv2
 import numpy as np
@@ -24,19 +25,30 @@ TILE = 2.0          # m per texture repetition
 TEX_SIZE = 512
 SHADE_AMBIENT = 0.3
 Z_FAR = 100.0
-_mips: list = []
+_mips: tuple = ()
+_mips_lock = threading.Lock()
 
 
-def _texture_mips() -> list:
+def _texture_mips() -> tuple:
+    """The texture's mip levels (wrap-padded), finest first: built once per process, and published whole.
+    (Built into the module's list by whichever thread came first, two threads simulating their first seafloor
+    at once both appended their levels: 14 levels instead of 7, the wrong level for every pixel footprint from
+    then on, and a diagnosis whose θ evaluations run on two threads refitted the seafloor to other values than
+    on one.)"""
+    global _mips
     if not _mips:
-        from ..scene import seafloor_texture
-        tex = seafloor_texture(size=TEX_SIZE, seed=0).astype(np.float32) / 255.0
-        level = tex
-        while True:
-            _mips.append(np.pad(level, ((1, 1), (1, 1), (0, 0)), mode="wrap"))
-            if level.shape[0] <= 8:
-                break
-            level = cv2.resize(level, (level.shape[1] // 2, level.shape[0] // 2), interpolation=cv2.INTER_AREA)
+        with _mips_lock:
+            if not _mips:
+                from ..scene import seafloor_texture
+                level = seafloor_texture(size=TEX_SIZE, seed=0).astype(np.float32) / 255.0
+                levels = []
+                while True:
+                    levels.append(np.pad(level, ((1, 1), (1, 1), (0, 0)), mode="wrap"))
+                    if level.shape[0] <= 8:
+                        break
+                    level = cv2.resize(level, (level.shape[1] // 2, level.shape[0] // 2),
+                                       interpolation=cv2.INTER_AREA)
+                _mips = tuple(levels)
     return _mips
 
 
