@@ -141,10 +141,10 @@ def test_the_callers_script_is_not_run_again_in_the_workers(tmp_path):
 
 def test_a_diagnosis_is_the_same_with_one_process_or_two(tmp_path):
     """The candidates of a round refitted side by side in two worker processes give the document of the
-    refits one after the other: the same selection, verdict and parameters, every number within 1e-5 (only the
-    times differ). Not bit for bit: the same refit in a process that computed other things before can differ
-    in the 7th digit (measured on one of three 640x480 bags: θ 0.9065968 against 0.9065970). Two effects judged on
-    statistics are allowed, so that their judges run side by side too."""
+    refits one after the other, bit for bit (only the times differ). (Until the seafloor's texture pyramid was
+    built under a lock, a two-process diagnosis of a seafloor dive could differ from the one-process one, up to
+    the effect named first: uw_sil.sim.effects.unmodeled_geometry, whose race has a test of its own.) Two
+    effects judged on statistics are allowed, so that their judges run side by side too."""
     from uw_sil.bags.synth import synthesize_trial
     from uw_sil.fit.diagnose import diagnose_bag, without_times
     from uw_sil.sim.camera import CameraModel
@@ -159,7 +159,7 @@ def test_a_diagnosis_is_the_same_with_one_process_or_two(tmp_path):
         return without_times(d)
 
     one, two = doc(1), doc(2)
-    assert _largest_difference(one, two) <= 1e-5, _largest_difference(one, two, where=True)
+    assert _largest_difference(one, two) == 0, _largest_difference(one, two, where=True)
     assert [s["chosen"] for s in one["selection"]] == [s["chosen"] for s in two["selection"]]
     assert any(c.get("round") == 1 for c in two["candidates"])
     assert {"sensor_noise", "compression"} <= {c["effect"] for c in two["candidates"]}

@@ -14,8 +14,9 @@ standard input and output (length-prefixed pickles; what the work prints goes to
   which stops the workers.
 
 Each worker gets one thread of the work's budget (``UW_SIL_THREADS=1``, BLAS on one thread). Results do not
-depend on which worker computes an item; the work itself may round differently in a process that computed
-other things before (a diagnosis: the 7th digit of one θ on one of three bags, uw_sil.fit.diagnose).
+depend on which worker computes an item nor on what it computed before, as long as what the work keeps between
+items (its caches) does not change values: a diagnosis's documents are the same with one process and two
+(uw_sil.fit.diagnose).
 """
 from __future__ import annotations
 

@@ -662,7 +662,7 @@ def _refit_all(workers, cands: list, job, current, say, label: str, took: dict,
                parents: Optional[dict] = None, reference: bool = True) -> dict:
     """Every candidate's refit of a round and (``reference``) the current model's own with the same budget (the
     candidates' reference, key :data:`REFERENCE`; None where there is none), side by side in the diagnosis's worker
-    processes (the results of one after the other, up to rounding: :func:`diagnose_frames`); ``{effect: Refit}``
+    processes (the results of one after the other: :func:`diagnose_frames`); ``{effect: Refit}``
     in the order of ``cands``, the reference last. The costliest refits first (their time in an earlier round,
     ``took``, updated here; else the plug-in's :attr:`~uw_sil.fit.judges.base.Judge.cost`). ``parents``: each
     candidate's refit of the previous round's model, a start of its refit here
@@ -733,11 +733,11 @@ def diagnose_frames(frames: list, fog: str = "exp2", seed: int = 0, max_effects:
     ``max_iter``/``popsize``: the CMA-ES budget of every fit (base and candidates alike);
     ``effects_allowed``: names of the effects considered (default all with a plug-in);
     ``processes``: worker processes refitting a round's candidates side by side (default: the thread budget,
-    :func:`uw_sil._shared.process.default_threads`; 1 = all in this process). The selection is the same; the
-    numbers agree to about 1e-7: a refit in a process that computed other things before can round differently
-    (measured with ``bench/bench_diagnose_speed.py``: identical documents on two physically based bags, θ
-    0.9065968 against 0.9065970 in one full refit of a third; the cause, somewhere in the lamp and seafloor
-    simulation, is not found).
+    :func:`uw_sil._shared.process.default_threads`; 1 = all in this process). The document is the same:
+    two-process diagnoses of the physical dives 405 (lamps) and 407 (lamps, a seafloor) are identical to the
+    one-process ones. (They were not on seafloor dives until 2026-11-30: the seafloor's texture pyramid, built
+    lazily by whichever θ thread came first, could get two threads' levels in the main process, which refits a
+    round's winner on two threads; :func:`uw_sil.sim.effects.unmodeled_geometry._texture_mips`.)
 
     BLAS runs on one thread meanwhile (the diagnosis evaluates θ on threads of its own; OpenBLAS threads on
     top of them oversubscribe the cores: a least-squares step's SVD took 12x longer on a busy machine)."""
