@@ -7,7 +7,11 @@ chosen once to mix mild and strong, single and several effects and one dive with
 Each dive (8 frames, 640x480) is written, diagnosed in a fresh process from the bag alone (``uw-sil diagnose
 --bag B --json J``; the truth stays in this script) and scored: effects named right, missed and named falsely,
 the lamps, the final model's held-out θ (as fitted, and as ``sim_camera`` renders it with the params file:
-``theta_heldout_simulated``), the camera noise it draws, the time.
+``theta_heldout_simulated``), the camera noise it draws, the time. For each concealed effect of the expected
+image the dive's line also gives its *visible energy* (:func:`visible_energy`: what the effect alone changes on
+the held-out frames, noise-free, as the least-squares fits see them) against the final model's held-out residual,
+and the line before the last lists the misses by that ratio: a miss far below 1 is an effect the frames could
+not show beside the misfit of the rest of the model.
 
 Bags and documents go to ``--out-dir`` (default a temporary directory); with a directory, a dive whose document
 is there is scored again, not diagnosed again (``--again`` diagnoses it anyway), so a run can be resumed and
@@ -15,7 +19,8 @@ two checkouts compared on the same bags (``--code DIR``: the checkout to diagnos
 
     .venv/bin/python bench/bench_physical_dives.py [--seeds 401,403] [--out-dir DIR] [--code DIR] [--again]
 
-A dive takes 2-4 minutes on the 2-core machine (about 20 minutes for nine, quiet). Last line::
+A dive takes 2-4 minutes on the 2-core machine (about 20 minutes for nine, quiet), its visible energies 10-30
+s more. Last line::
 
     physical dives: named R/T right, F false, lamps L/N, mean held-out θ X (as simulated Y), dives=N
 """
@@ -27,6 +32,8 @@ import os
 import sys
 import tempfile
 from pathlib import Path
+
+import numpy as np
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
@@ -58,6 +65,43 @@ def write_dive(seed: int, bag: Path) -> None:
 
     bag.parent.mkdir(parents=True, exist_ok=True)
     synth_physical(str(bag), dict(DIVES[seed]), n_frames=8, seed=seed, width=640)
+
+
+#: Effects whose draws are new in every frame, or that act on the noise: judged on held-out statistics, not on
+#: the expected image (their "visible" energy below would be that of other draws, or none).
+STATISTIC_EFFECTS = ("marine_snow", "sensor_noise", "compression")
+
+
+def visible_energy(seed: int, doc: dict) -> dict:
+    """What each concealed effect (of the expected image) changes on the dive's held-out frames: the mean squared
+    difference, grey levels², between the dive rendered without noise with all its effects and without that
+    one (the same particles), box-downsampled as the diagnosis's least-squares fits see the frames (about 80 px
+    wide). Set against the final model's held-out residual (``doc``), it says how much an effect could have
+    lowered that residual had every other part of the model been right: an effect far below the residual is
+    within what the lamp model's misfit hides."""
+    from physical_effects import synth_physical
+
+    from uw_sil.fit.residuals import box_down, reduction_factor
+
+    held = [f["index"] for f in doc["frames"] if f["role"] == "heldout"]
+    effects = dict(DIVES[seed])
+
+    def expected(eff: dict) -> list:
+        with tempfile.TemporaryDirectory(prefix="uw_sil-visible-") as tmp:
+            tr = synth_physical(str(Path(tmp) / "t.mcap"), eff, n_frames=8, seed=seed, width=640, noise=False,
+                                draws=effects, return_images=True)
+        f = reduction_factor(tr["_images"][0].shape[1], 80)
+        return [box_down(tr["_images"][i].astype(np.float32), f) for i in held]
+
+    full = None
+    out = {}
+    for e in effects:
+        if e in STATISTIC_EFFECTS:
+            continue
+        full = expected(effects) if full is None else full
+        less = expected({k: v for k, v in effects.items() if k != e})
+        out[e] = float(np.mean([((a - b) ** 2).mean() for a, b in zip(full, less)]))
+    return out
 
 
 def score(seed: int, doc: dict) -> dict:
@@ -92,17 +136,27 @@ def main(argv=None) -> int:
             if args.again or not js.exists():
                 how = f"load {os.getloadavg()[0]:.1f} before"
                 diagnose_fresh(str(bag), None, str(js), args.code)
-            r = score(seed, json.loads(js.read_text()))
+            doc = json.loads(js.read_text())
+            r = score(seed, doc)
+            r["visible"], r["residual"] = visible_energy(seed, doc), float(doc["final"]["residual_heldout"])
             rows.append(r)
+            vis = ", ".join(f"{e} {v:.2f}" for e, v in r["visible"].items())
             print(f"{seed}: right {r['right']}, missed {r['missed']}, false {r['false']}, held-out θ {r['theta']:.4f}, "
                   f"as simulated {r['theta_sim']:.4f} (camera noise: {r['camera_noise']}), {r['time_s']:.0f} s "
-                  f"({how})", flush=True)
+                  f"({how}); visible (grey levels², noise-free, held out): {vis or '-'} against the final "
+                  f"residual {r['residual']:.2f}", flush=True)
     right = sum(len(r["right"]) for r in rows)
     total = sum(len(truth_of(r["seed"])) for r in rows)
     false = sum(len(r["false"]) for r in rows)
     lamps = sum("artificial_light" in r["right"] for r in rows)
     theta = sum(r["theta"] for r in rows) / len(rows)
     theta_sim = sum(r["theta_sim"] for r in rows) / len(rows)
+    # the misses of the expected image by how much of the final residual they are: an effect that could lower it
+    # by a fraction only is within what the model's misfit elsewhere hides
+    miss = sorted((r["visible"][e] / max(r["residual"], 1e-9), r["seed"], e) for r in rows for e in r["missed"]
+                  if e in r["visible"])
+    print("misses of the expected image, visible energy over the final held-out residual: "
+          + (", ".join(f"{s} {e} {q:.2f}" for q, s, e in miss) or "none"))
     print(f"physical dives: named {right}/{total} right, {false} false, lamps {lamps}/{len(rows)}, "
           f"mean held-out θ {theta:.4f} (as simulated {theta_sim:.4f}), dives={len(rows)}")
     return 0

@@ -515,7 +515,8 @@ def _bayer_code():
 
 
 def synth_physical(out, effects: dict, n_frames: int = 8, seed: int = 0, width: int = 640,
-                   bs_step: int = 8, return_images: bool = False, twin_out=None, twin_seed: int = 1) -> dict:
+                   bs_step: int = 8, return_images: bool = False, twin_out=None, twin_seed: int = 1,
+                   noise: bool = True, draws: Optional[dict] = None) -> dict:
     """Write a physically based trial bag; ``effects``: {name: 'mild'|'strong'} from :data:`PHYSICAL_EFFECTS`.
 
     Returns the truth (not written anywhere): the effects with ``artificial_light`` (always on), the water,
@@ -525,6 +526,11 @@ def synth_physical(out, effects: dict, n_frames: int = 8, seed: int = 0, width: 
     other draws of the particles and the photon / read noise (from ``twin_seed``): what a simulation that
     reproduced everything but the draws would score against the recording. The recording is the same with or
     without its twin.
+
+    ``noise=False``: no photon, read or sensor noise (the image the camera's noise scatters about: what an
+    effect changes in a dive is the difference of two such images). ``draws``: the effects whose names seed the
+    random draws (the particles' field, the noise; default ``effects``): two dives that differ by one effect
+    draw the same particles when given the same ``draws``.
     """
     import cv2
 
@@ -534,7 +540,7 @@ def synth_physical(out, effects: dict, n_frames: int = 8, seed: int = 0, width: 
         raise ValueError(f"unknown physical effects / levels: {[(e, effects[e]) for e in bad]}")
     dive = make_dive(seed, n_frames, width)
     rng = np.random.default_rng(99000 + seed * 31 + sum(PHYSICAL_EFFECTS.index(e) * 7 + LEVELS.index(v)
-                                                        for e, v in effects.items()))
+                                                        for e, v in (effects if draws is None else draws).items()))
     cam = dive.camera
     model = load_model()
     if "unmodeled_geometry" in effects:
@@ -589,9 +595,9 @@ def synth_physical(out, effects: dict, n_frames: int = 8, seed: int = 0, width: 
 
     def camera_out(img, r):
         x = img * K
-        if "sensor_noise" in effects:
+        if noise and "sensor_noise" in effects:
             x = _bayer_noise(x * 255.0, r, effects["sensor_noise"], fpn) / 255.0
-        else:       # photons are counted whatever the camera: a low-gain sensor's shot and read noise
+        elif noise:     # photons are counted whatever the camera: a low-gain sensor's shot and read noise
             x = _base_noise(x * 255.0, r) / 255.0
         dn = ped + (255.0 - ped) * oetf(np.clip(x * wb, 0, 1))
         img8 = np.clip(np.rint(dn), 0, 255).astype(np.uint8)
