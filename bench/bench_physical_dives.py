@@ -67,11 +67,6 @@ def write_dive(seed: int, bag: Path) -> None:
     synth_physical(str(bag), dict(DIVES[seed]), n_frames=8, seed=seed, width=640)
 
 
-#: Effects whose draws are new in every frame, or that act on the noise: judged on held-out statistics, not on
-#: the expected image (their "visible" energy below would be that of other draws, or none).
-STATISTIC_EFFECTS = ("marine_snow", "sensor_noise", "compression")
-
-
 def visible_energy(seed: int, doc: dict) -> dict:
     """What each concealed effect (of the expected image) changes on the dive's held-out frames: the mean squared
     difference, grey levels², between the dive rendered without noise with all its effects and without that
@@ -81,6 +76,7 @@ def visible_energy(seed: int, doc: dict) -> dict:
     within what the lamp model's misfit hides."""
     from physical_effects import synth_physical
 
+    from uw_sil.fit.judges import JUDGES
     from uw_sil.fit.residuals import box_down, reduction_factor
 
     held = [f["index"] for f in doc["frames"] if f["role"] == "heldout"]
@@ -96,7 +92,7 @@ def visible_energy(seed: int, doc: dict) -> dict:
     full = None
     out = {}
     for e in effects:
-        if e in STATISTIC_EFFECTS:
+        if JUDGES[e].kind == "statistic":       # new draws every frame, or the noise: no expected image of its own
             continue
         full = expected(effects) if full is None else full
         less = expected({k: v for k, v in effects.items() if k != e})
