@@ -147,7 +147,7 @@ def test_objective_is_theta_of_the_noisy_degraded_frames_bit_for_bit(frames):
 def test_cmaes_from_the_linear_start_stops_early_and_theta_x0_is_its_first_evaluation(frames):
     fit = fit_frames(frames, method="cmaes", seed=1)
     o = fit.optim
-    assert o.patience == 5 and o.settings["min_step"] == 2.5e-4 and o.settings["sigma0"] == 0.0025
+    assert o.patience == 3 and o.settings["min_step"] == 2.5e-4 and o.settings["sigma0"] == 0.0025
     assert o.stop_reason in ("converged", "step") and o.n_iters < 100
     assert fit.theta_x0 == o.evaluations.f[0] == BackwardObjective(frames, fit.space)(linear_start(frames, fit.space)[None])[0]
     pso = fit_frames(frames, method="pso", seed=1, max_iter=2)
