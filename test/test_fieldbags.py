@@ -301,7 +301,7 @@ def test_field_bag_poses_from_each_source(field_bags, fmt, pose_in):
 def test_tf_bag_needs_composition_and_interpolation(field_bags):
     """The synthesized tree: navigation between the frames on /tf, the rest on /tf_static; the pose at a
     frame is not any single recorded transform."""
-    from uw_sil.bags.tf import load_tf
+    from uw_sil.bags.reader import load_tf
 
     _, bags = field_bags
     bag, truth = bags["jpeg", "tf"]

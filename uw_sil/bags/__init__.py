@@ -14,9 +14,9 @@ _EXPORTS = {
     "BagError": "records", "BagInfo": "reader", "RawMessage": "reader", "ReadReport": "reader", "Sample": "records",
     "StampSynchronizer": "stamps", "TopicInfo": "reader", "iter_messages": "reader", "iter_raw": "reader",
     "open_bag": "reader", "read_samples": "reader", "resolve_bag_path": "reader", "synthesize_trial": "synth",
-    "write_trial": "writer", "BagSource": "source", "PoseFrom": "source", "describe_sources": "source",
+    "write_trial": "writer", "BagSource": "source", "PoseFrom": "records", "describe_sources": "source",
     "CameraCalibration": "camera_yaml", "load_camera_yaml": "camera_yaml", "write_camera_yaml": "camera_yaml",
-    "TransformBuffer": "tf", "load_tf": "tf",
+    "TransformBuffer": "tf", "load_tf": "reader",
 }
 __all__ = sorted(_EXPORTS)
 

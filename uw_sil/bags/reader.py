@@ -1,4 +1,4 @@
-"""ROS 2 bags of field trials: write synthetic trials, read (image, camera_info, pose) samples.
+"""ROS 2 bags of field trials: read (image, camera_info, pose) samples, raw messages and the recorded transforms.
 
 Layout written by :func:`write_trial` (what ``ros2 bag record`` makes: a rosbag2 directory)::
 
@@ -35,13 +35,13 @@ import yaml
 from ..sim.transforms import pose_to_matrix
 from .imgmsg import compressed_to_rgb, image_to_rgb
 from .mcap_recover import McapFormatError, McapScanReport, iter_mcap, read_mcap_summary
-from .records import (CAMERA_INFO_TYPE, COMPRESSED_IMAGE_TYPE, IMAGE_TYPE, POSE_TYPE, STORAGE_SUFFIX, BagError,
-                      Sample)
+from .records import (CAMERA_INFO_TYPE, COMPRESSED_IMAGE_TYPE, IMAGE_TYPE, POSE_TYPE, STORAGE_SUFFIX, TF_TYPE,
+                      BagError, PoseFrom, Sample)
 from .stamps import StampSynchronizer, SyncStats, seconds_to_ns
 
 __all__ = [
     "TopicInfo", "ReadReport", "BagInfo", "RawMessage", "open_bag", "iter_raw", "iter_messages", "read_samples",
-    "resolve_bag_path",
+    "resolve_bag_path", "load_tf",
 ]
 
 log = logging.getLogger(__name__)
@@ -922,8 +922,6 @@ def read_samples(path, image_topic: str = "/camera/image_raw", info_topic: str |
         frame mismatch, invalid calibration or pose, markers found with ids the layout does not
         declare (and none it declares); at the end, when no frame had a pose.
     """
-    from .source import PoseFrom
-
     if refine_pose not in ("none", "ecc"):
         raise ValueError(f"refine_pose must be 'none' or 'ecc', got {refine_pose!r}")
     pf = PoseFrom("topic", topic=pose_topic) if pose_from is None else PoseFrom.parse(pose_from)
@@ -955,8 +953,6 @@ def read_samples(path, image_topic: str = "/camera/image_raw", info_topic: str |
 
         marker_layout = layout_for_model(model)       # a missing or bad layout file: fail now
     if pf.kind == "tf":
-        from .tf import load_tf
-
         with _located(layout.root):
             tf_buffer = load_tf(path, extrapolation_s=tf_extrapolation, max_gap_s=tf_max_gap)
             if pf.camera_frame:
@@ -1058,3 +1054,47 @@ def read_samples(path, image_topic: str = "/camera/image_raw", info_topic: str |
                             "" if rep.finished else "read so far ")
 
     return _Stream(gen(), rep)
+
+
+def load_tf(bag, topics=None, extrapolation_s: float = 0.1, max_gap_s: float = 1.0) -> TransformBuffer:
+    """Read the transforms of a bag into a :class:`~uw_sil.bags.tf.TransformBuffer`.
+
+    Parameters
+    ----------
+    bag : str or Path
+        Bag directory, ``metadata.yaml``, or bare ``.mcap`` / ``.db3`` file.
+    topics : sequence of str, optional
+        ``tf2_msgs/msg/TFMessage`` topics (default :data:`uw_sil.bags.tf.TF_TOPICS`); a topic whose name ends in ``_static`` holds static
+        transforms. Topics missing from the bag are skipped; if none is there, :class:`TfError`.
+    extrapolation_s, max_gap_s : float
+        See :class:`uw_sil.bags.tf.TransformBuffer`.
+
+    Notes
+    -----
+    Header stamps (not bag receive times) place the transforms in time. Messages are decoded with the
+    bag's own definitions through ``rosbags`` (no ROS installation needed).
+    """
+    from .tf import TF_TOPICS, TfError, TransformBuffer
+
+    topics = TF_TOPICS if topics is None else tuple(topics)
+
+    info = open_bag(bag)
+    present = [t for t in topics if t in info.topics]
+    if not present:
+        tf_like = [t.name for t in info.topics.values() if t.msgtype == TF_TYPE]
+        hint = f" (TFMessage topics in it: {', '.join(tf_like)})" if tf_like else ""
+        raise TfError(f"{info.path}: no {' or '.join(topics)} topic, so no tf pose source{hint}")
+    for t in present:
+        if info.topics[t].msgtype != TF_TYPE:
+            raise TfError(f"{info.path}: topic {t!r} has type {info.topics[t].msgtype}, expected {TF_TYPE}")
+    buf = TransformBuffer(extrapolation_s, max_gap_s)
+    buf.source = " and ".join(present)
+    for t in present:
+        static = t.endswith("_static")
+        for _, msg in iter_messages(bag, t):
+            for ts in msg.transforms:
+                stamp = int(ts.header.stamp.sec) * 1_000_000_000 + int(ts.header.stamp.nanosec)
+                tr, q = ts.transform.translation, ts.transform.rotation
+                buf.add(ts.header.frame_id, ts.child_frame_id, stamp, (tr.x, tr.y, tr.z), (q.x, q.y, q.z, q.w),
+                        static=static)
+    return buf

@@ -1,5 +1,6 @@
 """What readers and writers of trial bags share: message type names, the one-frame record
-(:class:`Sample`) and the error they raise (:class:`BagError`)."""
+(:class:`Sample`), where a frame's panel pose comes from (:class:`PoseFrom`) and the error they raise
+(:class:`BagError`)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -8,7 +9,7 @@ import numpy as np
 
 from ..sim.camera import CameraModel
 
-__all__ = ["Sample", "BagError", "IMAGE_TYPE", "COMPRESSED_IMAGE_TYPE", "CAMERA_INFO_TYPE", "POSE_TYPE", "TF_TYPE",
+__all__ = ["Sample", "BagError", "PoseFrom", "IMAGE_TYPE", "COMPRESSED_IMAGE_TYPE", "CAMERA_INFO_TYPE", "POSE_TYPE", "TF_TYPE",
            "STORAGE_SUFFIX", "ROSBAG2_VERSION"]
 
 IMAGE_TYPE = "sensor_msgs/msg/Image"
@@ -55,3 +56,45 @@ class Sample:
     index: int = -1
     pose_info: dict | None = None
 
+
+@dataclass(frozen=True)
+class PoseFrom:
+    """A pose source: ``kind`` is ``"topic"`` (with ``topic``), ``"tf"`` (with ``camera_frame``, which
+    may be ``""`` for the images' own frame, and ``panel_frame``) or ``"markers"``."""
+
+    kind: str
+    topic: str = ""
+    camera_frame: str = ""
+    panel_frame: str = ""
+
+    def __post_init__(self):
+        if self.kind not in ("topic", "tf", "markers"):
+            raise ValueError(f"pose source kind must be topic, tf or markers, got {self.kind!r}")
+        if self.kind == "topic" and not self.topic.startswith("/"):
+            raise ValueError(f"pose topic must be an absolute topic name (/...), got {self.topic!r}")
+        if self.kind == "tf" and not self.panel_frame:
+            raise ValueError("tf pose source needs the panel frame: tf:CAMERA_FRAME:PANEL_FRAME")
+
+    @classmethod
+    def parse(cls, text) -> "PoseFrom":
+        """``topic:/panel/pose``, ``tf:CAMERA_FRAME:PANEL_FRAME`` (or ``tf::PANEL_FRAME``) or ``markers``."""
+        if isinstance(text, PoseFrom):
+            return text
+        s = str(text).strip()
+        if s == "markers":
+            return cls("markers")
+        kind, sep, rest = s.partition(":")
+        if kind == "topic" and sep and rest:
+            return cls("topic", topic=rest)
+        if kind == "tf" and sep:
+            cam, sep2, panel = rest.partition(":")
+            if sep2 and panel and ":" not in panel:
+                return cls("tf", camera_frame=cam.lstrip("/"), panel_frame=panel.lstrip("/"))
+        raise ValueError(f"--pose-from: must be topic:/TOPIC, tf:CAMERA_FRAME:PANEL_FRAME or markers, got {s!r}")
+
+    def __str__(self) -> str:
+        if self.kind == "topic":
+            return f"topic:{self.topic}"
+        if self.kind == "tf":
+            return f"tf:{self.camera_frame}:{self.panel_frame}"
+        return "markers"

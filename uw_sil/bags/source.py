@@ -27,7 +27,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from .records import CAMERA_INFO_TYPE, COMPRESSED_IMAGE_TYPE, IMAGE_TYPE, POSE_TYPE, TF_TYPE, BagError
+from .records import CAMERA_INFO_TYPE, COMPRESSED_IMAGE_TYPE, IMAGE_TYPE, POSE_TYPE, TF_TYPE, BagError, PoseFrom
 
 __all__ = ["PoseFrom", "BagSource", "describe_sources", "DEFAULT_IMAGE_TOPIC", "DEFAULT_INFO_TOPIC",
            "DEFAULT_POSE_TOPIC"]
@@ -36,49 +36,6 @@ DEFAULT_IMAGE_TOPIC = "/camera/image_raw"
 DEFAULT_INFO_TOPIC = "/camera/camera_info"
 DEFAULT_POSE_TOPIC = "/panel/pose"
 IMAGE_TYPES = (IMAGE_TYPE, COMPRESSED_IMAGE_TYPE)
-
-
-@dataclass(frozen=True)
-class PoseFrom:
-    """A pose source: ``kind`` is ``"topic"`` (with ``topic``), ``"tf"`` (with ``camera_frame``, which
-    may be ``""`` for the images' own frame, and ``panel_frame``) or ``"markers"``."""
-
-    kind: str
-    topic: str = ""
-    camera_frame: str = ""
-    panel_frame: str = ""
-
-    def __post_init__(self):
-        if self.kind not in ("topic", "tf", "markers"):
-            raise ValueError(f"pose source kind must be topic, tf or markers, got {self.kind!r}")
-        if self.kind == "topic" and not self.topic.startswith("/"):
-            raise ValueError(f"pose topic must be an absolute topic name (/...), got {self.topic!r}")
-        if self.kind == "tf" and not self.panel_frame:
-            raise ValueError("tf pose source needs the panel frame: tf:CAMERA_FRAME:PANEL_FRAME")
-
-    @classmethod
-    def parse(cls, text) -> "PoseFrom":
-        """``topic:/panel/pose``, ``tf:CAMERA_FRAME:PANEL_FRAME`` (or ``tf::PANEL_FRAME``) or ``markers``."""
-        if isinstance(text, PoseFrom):
-            return text
-        s = str(text).strip()
-        if s == "markers":
-            return cls("markers")
-        kind, sep, rest = s.partition(":")
-        if kind == "topic" and sep and rest:
-            return cls("topic", topic=rest)
-        if kind == "tf" and sep:
-            cam, sep2, panel = rest.partition(":")
-            if sep2 and panel and ":" not in panel:
-                return cls("tf", camera_frame=cam.lstrip("/"), panel_frame=panel.lstrip("/"))
-        raise ValueError(f"--pose-from: must be topic:/TOPIC, tf:CAMERA_FRAME:PANEL_FRAME or markers, got {s!r}")
-
-    def __str__(self) -> str:
-        if self.kind == "topic":
-            return f"topic:{self.topic}"
-        if self.kind == "tf":
-            return f"tf:{self.camera_frame}:{self.panel_frame}"
-        return "markers"
 
 
 @dataclass(frozen=True)
@@ -219,7 +176,8 @@ def describe_sources(bag) -> str:
             lines.append(f"  topic:{t.name}   ({t.count} PoseStamped; must be the panel in the camera optical frame)")
     tf_topics = [t.name for t in topics if t.msgtype == TF_TYPE]
     if tf_topics:
-        from .tf import TF_TOPICS, load_tf
+        from .reader import load_tf
+        from .tf import TF_TOPICS
 
         if any(t in TF_TOPICS for t in tf_topics):
             try:

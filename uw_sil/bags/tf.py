@@ -6,7 +6,8 @@ A field bag rarely has the panel's pose in the camera frame; it has the vehicle'
 holds these edges and answers ``lookup("camera_optical_frame", "panel", stamp)`` -- the panel frame
 expressed in the camera frame, ``T_cam_panel`` -- by composing the transforms along the tree path through
 the frames' common ancestor, each dynamic edge interpolated to the stamp (linear in translation,
-spherical-linear in rotation [1]_). It is tf2's ``lookupTransform(target, source, time)`` without ROS.
+spherical-linear in rotation [1]_). It is tf2's ``lookupTransform(target, source, time)`` without ROS. A bag's
+transforms are read into one by :func:`uw_sil.bags.reader.load_tf`.
 
 Conventions (tf2): a ``geometry_msgs/TransformStamped`` with ``header.frame_id = parent`` and
 ``child_frame_id = child`` is the child frame's pose in the parent frame, ``T_parent_child`` (maps points
@@ -28,11 +29,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..sim.transforms import pose_to_matrix
-from .records import TF_TYPE, BagError
+from .records import BagError
 
-__all__ = ["TransformBuffer", "TfError", "TfExtrapolationError", "load_tf", "slerp", "TF_TOPICS"]
+__all__ = ["TransformBuffer", "TfError", "TfExtrapolationError", "slerp", "TF_TOPICS"]
 
-#: Topics read by :func:`load_tf`: dynamic and static transforms.
+#: Topics read by :func:`uw_sil.bags.reader.load_tf`: dynamic and static transforms.
 TF_TOPICS = ("/tf", "/tf_static")
 
 
@@ -267,45 +268,3 @@ class TransformBuffer:
         inv[:3, :3] = R.T
         inv[:3, 3] = -R.T @ t
         return inv @ T_anc_source
-
-
-def load_tf(bag, topics=TF_TOPICS, extrapolation_s: float = 0.1, max_gap_s: float = 1.0) -> TransformBuffer:
-    """Read the transforms of a bag into a :class:`TransformBuffer`.
-
-    Parameters
-    ----------
-    bag : str or Path
-        Bag directory, ``metadata.yaml``, or bare ``.mcap`` / ``.db3`` file.
-    topics : sequence of str
-        ``tf2_msgs/msg/TFMessage`` topics; a topic whose name ends in ``_static`` holds static
-        transforms. Topics missing from the bag are skipped; if none is there, :class:`TfError`.
-    extrapolation_s, max_gap_s : float
-        See :class:`TransformBuffer`.
-
-    Notes
-    -----
-    Header stamps (not bag receive times) place the transforms in time. Messages are decoded with the
-    bag's own definitions through ``rosbags`` (no ROS installation needed).
-    """
-    from .reader import iter_messages, open_bag
-
-    info = open_bag(bag)
-    present = [t for t in topics if t in info.topics]
-    if not present:
-        tf_like = [t.name for t in info.topics.values() if t.msgtype == TF_TYPE]
-        hint = f" (TFMessage topics in it: {', '.join(tf_like)})" if tf_like else ""
-        raise TfError(f"{info.path}: no {' or '.join(topics)} topic, so no tf pose source{hint}")
-    for t in present:
-        if info.topics[t].msgtype != TF_TYPE:
-            raise TfError(f"{info.path}: topic {t!r} has type {info.topics[t].msgtype}, expected {TF_TYPE}")
-    buf = TransformBuffer(extrapolation_s, max_gap_s)
-    buf.source = " and ".join(present)
-    for t in present:
-        static = t.endswith("_static")
-        for _, msg in iter_messages(bag, t):
-            for ts in msg.transforms:
-                stamp = int(ts.header.stamp.sec) * 1_000_000_000 + int(ts.header.stamp.nanosec)
-                tr, q = ts.transform.translation, ts.transform.rotation
-                buf.add(ts.header.frame_id, ts.child_frame_id, stamp, (tr.x, tr.y, tr.z), (q.x, q.y, q.z, q.w),
-                        static=static)
-    return buf
