@@ -1064,8 +1064,9 @@ def load_tf(bag, topics=None, extrapolation_s: float = 0.1, max_gap_s: float = 1
     bag : str or Path
         Bag directory, ``metadata.yaml``, or bare ``.mcap`` / ``.db3`` file.
     topics : sequence of str, optional
-        ``tf2_msgs/msg/TFMessage`` topics (default :data:`uw_sil.bags.tf.TF_TOPICS`); a topic whose name ends in ``_static`` holds static
-        transforms. Topics missing from the bag are skipped; if none is there, :class:`TfError`.
+        ``tf2_msgs/msg/TFMessage`` topics (default :data:`uw_sil.bags.tf.TF_TOPICS`); a topic whose name
+        ends in ``_static`` holds static transforms. Topics missing from the bag are skipped; if none is
+        there, :class:`~uw_sil.bags.tf.TfError`.
     extrapolation_s, max_gap_s : float
         See :class:`uw_sil.bags.tf.TransformBuffer`.
 

@@ -9,8 +9,8 @@ import numpy as np
 
 from ..sim.camera import CameraModel
 
-__all__ = ["Sample", "BagError", "PoseFrom", "IMAGE_TYPE", "COMPRESSED_IMAGE_TYPE", "CAMERA_INFO_TYPE", "POSE_TYPE", "TF_TYPE",
-           "STORAGE_SUFFIX", "ROSBAG2_VERSION"]
+__all__ = ["Sample", "BagError", "PoseFrom", "IMAGE_TYPE", "COMPRESSED_IMAGE_TYPE", "CAMERA_INFO_TYPE", "POSE_TYPE",
+           "TF_TYPE", "STORAGE_SUFFIX", "ROSBAG2_VERSION"]
 
 IMAGE_TYPE = "sensor_msgs/msg/Image"
 COMPRESSED_IMAGE_TYPE = "sensor_msgs/msg/CompressedImage"
