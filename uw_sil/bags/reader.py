@@ -38,6 +38,7 @@ from .mcap_recover import McapFormatError, McapScanReport, iter_mcap, read_mcap_
 from .records import (CAMERA_INFO_TYPE, COMPRESSED_IMAGE_TYPE, IMAGE_TYPE, POSE_TYPE, STORAGE_SUFFIX, TF_TYPE,
                       BagError, PoseFrom, Sample)
 from .stamps import StampSynchronizer, SyncStats, seconds_to_ns
+from .tf import TF_TOPICS, TfError, TransformBuffer
 
 __all__ = [
     "TopicInfo", "ReadReport", "BagInfo", "RawMessage", "open_bag", "iter_raw", "iter_messages", "read_samples",
@@ -1056,17 +1057,16 @@ def read_samples(path, image_topic: str = "/camera/image_raw", info_topic: str |
     return _Stream(gen(), rep)
 
 
-def load_tf(bag, topics=None, extrapolation_s: float = 0.1, max_gap_s: float = 1.0) -> TransformBuffer:
+def load_tf(bag, topics=TF_TOPICS, extrapolation_s: float = 0.1, max_gap_s: float = 1.0) -> TransformBuffer:
     """Read the transforms of a bag into a :class:`~uw_sil.bags.tf.TransformBuffer`.
 
     Parameters
     ----------
     bag : str or Path
         Bag directory, ``metadata.yaml``, or bare ``.mcap`` / ``.db3`` file.
-    topics : sequence of str, optional
-        ``tf2_msgs/msg/TFMessage`` topics (default :data:`uw_sil.bags.tf.TF_TOPICS`); a topic whose name
-        ends in ``_static`` holds static transforms. Topics missing from the bag are skipped; if none is
-        there, :class:`~uw_sil.bags.tf.TfError`.
+    topics : sequence of str
+        ``tf2_msgs/msg/TFMessage`` topics; a topic whose name ends in ``_static`` holds static
+        transforms. Topics missing from the bag are skipped; if none is there, :class:`~uw_sil.bags.tf.TfError`.
     extrapolation_s, max_gap_s : float
         See :class:`uw_sil.bags.tf.TransformBuffer`.
 
@@ -1075,10 +1075,6 @@ def load_tf(bag, topics=None, extrapolation_s: float = 0.1, max_gap_s: float = 1
     Header stamps (not bag receive times) place the transforms in time. Messages are decoded with the
     bag's own definitions through ``rosbags`` (no ROS installation needed).
     """
-    from .tf import TF_TOPICS, TfError, TransformBuffer
-
-    topics = TF_TOPICS if topics is None else tuple(topics)
-
     info = open_bag(bag)
     present = [t for t in topics if t in info.topics]
     if not present:
