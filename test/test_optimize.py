@@ -1,6 +1,8 @@
 """Tests of uw_sil.fit.optimize: the batched PSO (pyswarm) / CMA-ES layer of the backward optimization."""
 import json
 import math
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -463,3 +465,24 @@ def test_cmaes_stops_when_its_step_has_collapsed():
         optimize(bowl, LO, HI, method="cmaes", min_step=-1.0)
     with pytest.raises(TypeError, match="min_step"):
         optimize(bowl, LO, HI, method="pso", min_step=1e-3)
+
+
+def test_warm_up_imports_the_cmaes_library_in_the_background_and_nothing_for_pso():
+    # a fresh interpreter: this one has imported cma already
+    code = (
+        "import sys\n"
+        "from uw_sil.fit.optimize import warm_up\n"
+        "assert warm_up('pso') is None and 'cma' not in sys.modules\n"
+        "t = warm_up('pso', 'cmaes')\n"
+        "t.join(60)\n"
+        "assert t.daemon and not t.is_alive() and 'cma' in sys.modules\n"
+        "try:\n"
+        "    warm_up('nelder-mead')\n"
+        "except ValueError as e:\n"
+        "    assert 'nelder-mead' in str(e) and 'pso, cmaes' in str(e)\n"
+        "else:\n"
+        "    raise AssertionError('no error')\n"
+        "print('ok')\n"
+    )
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0 and p.stdout.strip() == "ok", p.stderr[-2000:]

@@ -336,6 +336,7 @@ def _warn_if_damaged(bag) -> None:
 
 def cmd_fit(args) -> int:
     from .fit.backward import fit_bag, write_json_atomic, write_params_yaml
+    from .fit.optimize import warm_up
     from .fit.report import write_report
 
     methods = [args.optimizer] + ([m for m in ("pso", "cmaes") if m != args.optimizer] if args.compare else [])
@@ -343,6 +344,7 @@ def cmd_fit(args) -> int:
     _check_option("--stride", args.stride, args.stride is None or args.stride >= 1, ">= 1")
     _check_option("--min-coverage", args.min_coverage, 0 <= args.min_coverage < 1, "in [0, 1)")
     _check_option("--max-iter", args.max_iter, args.max_iter is None or args.max_iter >= 1, ">= 1")
+    warm_up(*methods)          # the optimizer's library imports while the bag is read and the frames rendered
     sim_noise = _sim_noise(args.sim_noise)
     source = _bag_source(args)
     _warn_if_damaged(args.bag)
@@ -558,10 +560,13 @@ def cmd_diagnose(args) -> int:
 
 
 def cmd_demo(args) -> int:
+    from .fit.optimize import warm_up
+
     out = Path(args.out_dir)
     out.mkdir(parents=True, exist_ok=True)
     bag = out / "trial.mcap"
     t0 = time.perf_counter()
+    warm_up(*(("pso", "cmaes") if args.compare else (args.optimizer,)))     # imports during the synthesis
     cmd_synth(build_parser().parse_args(["synth", "--out", str(bag), "--frames", str(args.frames), "--seed",
                                          str(args.seed), "--force", "--contact-sheet", str(out / "contact_sheet.png")]))
     fit_args = ["fit", "--bag", str(bag), "--frames", "3", "--stride", str(max(1, args.frames // 3)),

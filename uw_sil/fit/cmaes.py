@@ -10,12 +10,21 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["run_cmaes"]
+__all__ = ["run_cmaes", "load_cma"]
+
+
+def load_cma():
+    """The ``cma`` module, imported on first use: its import takes 1.3-1.8 s here (it pulls in scipy.stats and
+    matplotlib), which a process that never runs CMA-ES should not pay, and which a process that will should
+    pay before its fit starts (:func:`uw_sil.fit.optimize.warm_up`)."""
+    import cma
+
+    return cma
 
 
 def run_cmaes(rec, seed, popsize, max_iter, opts, u0):
     """CMA-ES by ``cma`` (ask/tell), one batched call per generation."""
-    import cma
+    cma = load_cma()
 
     d = rec.d
     rng = np.random.default_rng(seed)

@@ -81,7 +81,7 @@ from typing import Callable, Optional, Sequence
 
 import numpy as np
 
-from .cmaes import run_cmaes
+from .cmaes import load_cma, run_cmaes
 from .pso import run_pso
 
 __all__ = [
@@ -94,9 +94,29 @@ __all__ = [
     "validate_bounds",
     "convergence_iteration",
     "optimize",
+    "warm_up",
 ]
 
 METHODS = ("pso", "cmaes")
+
+
+def warm_up(*methods: str):
+    """Import the optimizer libraries of ``methods`` in a background thread, so that a fit started later does not
+    wait for them: CMA-ES's ``cma`` takes 1.3-1.8 s to import, a third of the dive-start fit (`uw-sil fit` and the
+    backward_fit node call this when they start, before the bag is read or the first frame arrives). A fit that
+    starts before the import has ended waits for it (Python's import lock), as it would have without this.
+    Returns the thread, or None when no method needs anything imported."""
+    import threading
+
+    unknown = [m for m in methods if m not in METHODS]
+    if unknown:
+        raise ValueError(f"unknown optimizer {unknown[0]!r}; expected one of {', '.join(METHODS)}")
+    if "cmaes" not in methods:
+        return None                  # PSO is this package's own code (uw_sil.fit.pso)
+    t = threading.Thread(target=load_cma, name="uw_sil-warm-up", daemon=True)
+    t.start()
+    return t
+
 
 #: The paper's particle swarm settings (read-only).
 PSO_PAPER_SETTINGS = MappingProxyType(
