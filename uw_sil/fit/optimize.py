@@ -102,7 +102,7 @@ METHODS = ("pso", "cmaes")
 
 def warm_up(*methods: str):
     """Import the optimizer libraries of ``methods`` in a background thread, so that a fit started later does not
-    wait for them: CMA-ES's ``cma`` takes 1.3-1.8 s to import, a third of the dive-start fit (`uw-sil fit` and the
+    wait for them: CMA-ES's ``cma`` takes 1.3-1.8 s to import, a quarter of the dive-start fit (`uw-sil fit` and the
     backward_fit node call this when they start, before the bag is read or the first frame arrives). A fit that
     starts before the import has ended waits for it (Python's import lock), as it would have without this.
     Returns the thread, or None when no method needs anything imported."""
