@@ -27,7 +27,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+from .reader import iter_messages, load_tf, open_bag, read_samples
 from .records import CAMERA_INFO_TYPE, COMPRESSED_IMAGE_TYPE, IMAGE_TYPE, POSE_TYPE, TF_TYPE, BagError, PoseFrom
+from .tf import TF_TOPICS
 
 __all__ = ["PoseFrom", "BagSource", "describe_sources", "DEFAULT_IMAGE_TOPIC", "DEFAULT_INFO_TOPIC",
            "DEFAULT_POSE_TOPIC"]
@@ -91,8 +93,6 @@ class BagSource:
     def read(self, bag, **kw):
         """Samples of ``bag`` (lazy, with a ``.report``): :func:`uw_sil.bags.reader.read_samples` with this
         source. Extra keywords go to it."""
-        from .reader import read_samples
-
         pf = self.pose_from
         opts = dict(image_topic=self.image_topic,
                     info_topic=None if self.camera_info is not None else self.info_topic,
@@ -111,8 +111,6 @@ class BagSource:
 
 
 def _first_message(bag, topic):
-    from .reader import iter_messages
-
     stream = iter_messages(bag, topic)
     try:
         for _, msg in stream:
@@ -130,8 +128,6 @@ def describe_sources(bag) -> str:
     ``PoseStamped`` topic, the frames of ``/tf`` and ``/tf_static`` (with a suggested
     ``tf:CAMERA_FRAME:PANEL_FRAME``), and ``markers`` (with the shipped panel's layout).
     """
-    from .reader import open_bag
-
     info = open_bag(bag)
     topics = sorted(info.topics.values(), key=lambda t: t.name)
     lines = ["image topics (--image-topic):"]
@@ -176,9 +172,6 @@ def describe_sources(bag) -> str:
             lines.append(f"  topic:{t.name}   ({t.count} PoseStamped; must be the panel in the camera optical frame)")
     tf_topics = [t.name for t in topics if t.msgtype == TF_TYPE]
     if tf_topics:
-        from .reader import load_tf
-        from .tf import TF_TOPICS
-
         if any(t in TF_TOPICS for t in tf_topics):
             try:
                 buf = load_tf(bag)
