@@ -53,7 +53,7 @@ def _nodes(ros, small_bag):
 
 READ_ONLY = {
     "sim_camera": {"model_path", "width", "height", "hfov_deg", "queue_size", "effects", "extensible_effects",
-                   "camera_info_file", "reliable_output"},
+                   "camera_info_file", "reliable_output", "workers"},
     "backward_fit": {"sim_node", "max_dt", "auto_start", "model_path", "exit_when_done", "reliable_input",
                      "image_transport", "camera_info_file"},
     "bag_play": {"bag", "rate", "loop", "start_paused", "delay", "wait_timeout", "clock_hz", "topics",
@@ -69,7 +69,7 @@ def test_every_parameter_has_its_own_descriptor(ros, small_bag):
     try:
         for node in nodes:
             names = sorted(set(node._parameters) - ROS_OWN)
-            assert len(names) == {"sim_camera": 18, "backward_fit": 26, "bag_play": 10}[node.get_name()], names
+            assert len(names) == {"sim_camera": 19, "backward_fit": 26, "bag_play": 10}[node.get_name()], names
             descriptors = node.describe_parameters(names)
             ids = {id(node._descriptors[n]) for n in names}
             assert len(ids) == len(names), f"{node.get_name()}: descriptor objects shared between parameters"

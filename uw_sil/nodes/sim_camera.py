@@ -15,7 +15,9 @@ Parameters (live, validated; set with ``ros2 param set`` or the parameter servic
     ``a_r a_g a_b`` attenuation [1/m], ``b_r b_g b_b`` background [0..1], ``rho_f`` fog density [1/m],
     ``fog_mode`` (exp2|exp|none), ``noise_sigma`` (camera noise in grey levels); read-only: ``model_path``, ``width``, ``height``, ``hfov_deg``,
     ``queue_size`` (1: poses arriving while a frame renders replace each other, so the newest is
-    rendered next; raise it to render every pose of a burst, at the cost of latency), ``reliable_output``
+    rendered next; raise it to render every pose of a burst, at the cost of latency), ``workers`` (threads
+    running the underwater model of frames side by side while the next one renders, default 2:
+    :mod:`uw_sil.sim.stream`; frames are published in pose order), ``reliable_output``
     (false: the sim/* topics with sensor-data QoS; true, as in a replayed bag: reliable, keep-last 10,
     so that no rendered frame is lost).
     ``effects`` (string, default ""): effects of :mod:`uw_sil.sim.effects` added to the model,
@@ -45,6 +47,7 @@ from ..bags.imgmsg import depth_to_image_fields, rgb_to_image_fields
 from ..sim.optics import FOG_MODES
 from ..sim.params import RGB_NAMES, UNITS, UnderwaterParams
 from ..sim.simcam import SimCamera
+from ..sim.stream import FrameStream
 from ..sim.transforms import pose_to_matrix
 from . import camera_from_file, run_node
 
@@ -104,6 +107,10 @@ def _descriptor(name: str) -> ParameterDescriptor:
         "queue_size": lambda: ParameterDescriptor(
             description="poses queued while a frame renders (1: the newest replaces older ones); read at start",
             read_only=True, integer_range=_int_range(1, 1000)),
+        "workers": lambda: ParameterDescriptor(
+            description="threads running the underwater model of frames side by side, while the next frame "
+                        "renders (uw_sil.sim.stream); read at start", read_only=True,
+            integer_range=_int_range(1, 16)),
     }[name]()
 
 
@@ -133,7 +140,7 @@ class SimCameraNode(Node):
             self.declare_parameter(n, defaults[n], _descriptor(n))
         for n, default in (("fog_mode", "exp2"), ("noise_sigma", 0.0), ("model_path", ""), ("width", 640),
                            ("height", 480), ("hfov_deg", 70.0), ("queue_size", 1), ("extensible_effects", ""),
-                           ("camera_info_file", ""), ("reliable_output", False)):
+                           ("camera_info_file", ""), ("reliable_output", False), ("workers", 2)):
             self.declare_parameter(n, default, _descriptor(n))
         self._extensible = _effect_list(self.get_parameter("extensible_effects").value, "extensible_effects")
         effects = _descriptor("effects")
@@ -155,6 +162,8 @@ class SimCameraNode(Node):
         self.sim = SimCamera(self._params_from(dict()), camera=camera, model=g("model_path").value or None,
                              fog=g("fog_mode").value, noise_sigma=g("noise_sigma").value,
                              effects=self._effects_from(dict()))
+        # the render of the next pose while the model of the last ones runs; frames published in pose order
+        self.stream = FrameStream(self.sim, self._publish, workers=g("workers").value)
         # Check a whole batch first, apply it only once every entry has passed (and rclpy has stored it):
         # a batch rejected by its last entry changes nothing.
         self.add_on_set_parameters_callback(self._on_set_parameters)
@@ -284,21 +293,36 @@ class SimCameraNode(Node):
         # mask (the colour pass, the shading and the underwater model are most of a 640x480 frame's time).
         wanted = [p for p in (self.pub_image, self.pub_clean, self.pub_depth, self.pub_mask)
                   if p.get_subscription_count() > 0]
-        frame = self.sim.render(T, image=self.pub_image in wanted or self.pub_clean in wanted)
-        header = msg.header
+        self.stream.submit(T, image=self.pub_image in wanted or self.pub_clean in wanted,
+                           tag=(msg.header, wanted))
+
+    def _publish(self, tag, frame, error):
+        """A finished frame (from the stream's threads, in pose order)."""
+        header, wanted = tag
+        if error is not None:
+            self.get_logger().error(f"frame at {header.stamp.sec}.{header.stamp.nanosec:09d} failed: {error!r}",
+                                    throttle_duration_sec=5.0)
+            return
         fields = {self.pub_image: lambda: rgb_to_image_fields(frame.image_uint8()),
                   self.pub_clean: lambda: rgb_to_image_fields(
                       np.clip(np.rint(frame.render.rgb * 255), 0, 255).astype(np.uint8)),
                   self.pub_depth: lambda: depth_to_image_fields(frame.render.depth),
                   self.pub_mask: lambda: rgb_to_image_fields(frame.render.labels, "mono8")}
-        for pub in wanted:
-            pub.publish(Image(header=header, **fields[pub]()))
-        self.pub_info.publish(CameraInfo(header=header, **self.sim.camera.camera_info_fields()))
+        try:
+            for pub in wanted:
+                pub.publish(Image(header=header, **fields[pub]()))
+            self.pub_info.publish(CameraInfo(header=header, **frame.camera.camera_info_fields()))
+        except Exception:           # noqa: BLE001 - rclpy's RCLError once the context is shut down
+            if self.context.ok():
+                raise
+            return                  # shutting down: the frames still on their way are not published
         self.frames += 1
 
     def destroy_node(self):
         # Also for a node whose constructor was interrupted (Ctrl-C while the renderer starts): rclpy
         # destroys the nodes of a context at shutdown, built or not.
+        if getattr(self, "stream", None) is not None:
+            self.stream.close(cancel=True)
         if getattr(self, "sim", None) is not None:
             self.sim.close()
         super().destroy_node()

@@ -56,7 +56,8 @@ Pitfalls handled here
   as ``cx + 0.5, cy + 0.5`` so depth matches a ray cast through OpenCV pixel centres.
 - Do not ``fork`` a process that holds a renderer: the child hangs. Use the ``spawn``
   start method of :mod:`multiprocessing`, or fork before creating the renderer.
-- A renderer is not thread-safe; use one per thread or process.
+- A renderer is not thread-safe; use one per thread or process. Only :meth:`Renderer.draw` (the OpenGL
+  passes) needs that: :meth:`Renderer.develop` of its buffers can run on any thread, side by side.
 - Draw order: pyrender keeps mesh nodes in a ``set`` (iteration order = memory addresses of the
   node objects) and draws them in that order where its distance sort ties (every node of the
   shipped panel sits at the origin). Where two surfaces have the same depth (the textured plate
@@ -80,7 +81,7 @@ from .camera import CameraModel
 from .normals import plane_terms
 from .scene import node_label
 
-__all__ = ["RenderResult", "Renderer", "render", "DEFAULT_ALBEDO"]
+__all__ = ["RawRender", "RenderResult", "Renderer", "render", "DEFAULT_ALBEDO"]
 
 SHADINGS = ("lambert", "flat")
 
@@ -193,6 +194,21 @@ class RenderResult:
     def hit(self) -> np.ndarray:
         """Boolean mask of pixels where the model is hit."""
         return self.part_ids > 0
+
+
+@dataclass(frozen=True, eq=False)
+class RawRender:
+    """One frame's buffers as read from OpenGL (:meth:`Renderer.draw`), with what :meth:`Renderer.develop`
+    needs of the camera they were drawn with: ``color`` (H, W, 3) uint8 albedo or None, ``seg`` (H, W, 3) uint8
+    node colours, ``depth`` (H, W) float32 (0 where nothing is hit), and the camera's per-pixel ray terms."""
+
+    color: object
+    seg: np.ndarray
+    depth: np.ndarray
+    camera: CameraModel
+    ray_norm: np.ndarray
+    xt: np.ndarray
+    yt: np.ndarray
 
 
 class Renderer:
@@ -328,6 +344,10 @@ class Renderer:
         -------
         RenderResult
         """
+        return self.develop(self.draw(T_cam_panel, colour))
+
+    def draw(self, T_cam_panel, colour: bool = True) -> RawRender:
+        """The OpenGL part of :meth:`render`: the passes and their buffers (one thread at a time per renderer)."""
         if self._offscreen is None:
             raise RuntimeError("renderer is closed")
         T = np.asarray(T_cam_panel, dtype=float)
@@ -344,11 +364,16 @@ class Renderer:
 
         color = self._offscreen.render(self._scene, flags=self._flags_color)[0] if colour else None
         seg, depth = self._offscreen.render(self._scene, flags=self._flags_seg, seg_node_map=self._seg_map)
+        return RawRender(color, seg, depth, self._camera, self._ray_norm, self._xt, self._yt)
 
+    def develop(self, raw: RawRender) -> RenderResult:
+        """The rest of :meth:`render` on the buffers of :meth:`draw`: no OpenGL, so frames drawn one after the other
+        can be developed on other threads, side by side."""
+        seg, depth, color = raw.seg, raw.depth, raw.color
         part_ids = seg[..., 0].astype(np.uint16) | (seg[..., 1].astype(np.uint16) << 8)
         hit = part_ids > 0
         depth = np.where(hit, depth, np.float32(np.inf)).astype(np.float32, copy=False)
-        rng = depth * self._ray_norm
+        rng = depth * raw.ray_norm
         labels = self._label_lut[part_ids]
         if color is None:
             return RenderResult(rgb=None, depth=depth, range=rng, labels=labels, part_ids=part_ids)
@@ -357,7 +382,7 @@ class Renderer:
         # +0.0 an assignment would write), or the pixels zeroed where nothing is shaded
         miss = ~hit
         if self.shading == "lambert":
-            shade = self._lambert(depth, part_ids, hit)
+            shade = self._lambert(depth, part_ids, raw)
             np.copyto(shade, np.float32(0.0), where=miss)
             rgb *= shade[..., None]
         else:
@@ -369,12 +394,12 @@ class Renderer:
         for T in poses:
             yield self.render(T)
 
-    def _lambert(self, depth, part_ids, hit) -> np.ndarray:
+    def _lambert(self, depth, part_ids, raw: RawRender) -> np.ndarray:
         """Shading factor ambient + (1 - ambient) * max(0, cos(normal, optical axis)), the normal of the planar
         face from the depth map (:mod:`uw_sil.sim.normals`; isolated pixels count as facing the camera)."""
         w = np.float32(1.0) / depth             # 0 where nothing is hit (depth inf)
-        cam = self._camera
-        mx, my, mz = plane_terms(w, part_ids, cam.fx, cam.fy, self._xt, self._yt)
+        cam = raw.camera
+        mx, my, mz = plane_terms(w, part_ids, cam.fx, cam.fy, raw.xt, raw.yt)
         norm = np.sqrt(mx * mx + my * my + mz * mz)
         cos = np.divide(mz, norm, out=np.ones_like(mz), where=norm > 0)
         np.clip(cos, 0.0, 1.0, out=cos)

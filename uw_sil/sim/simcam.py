@@ -12,6 +12,7 @@ Examples
 """
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 from typing import Optional
 
@@ -19,10 +20,30 @@ import numpy as np
 
 from .camera import CameraModel
 from .optics import FOG_MODES, degrade
+from .effects import get_effect
+from .effects.base import effect_rng
+from .effects.pose_error import PoseError
 from .model import UnderwaterModel, flat_to_effect_params, normalize_effects
 from .params import UnderwaterParams
 
-__all__ = ["SimFrame", "SimCamera"]
+__all__ = ["FrameJob", "SimFrame", "SimCamera"]
+
+
+@dataclass(frozen=True)
+class FrameJob:
+    """One frame as :meth:`SimCamera.plan` fixed it: the pose rendered (the recorded one corrected by a pose
+    error), whether it has an image, the base parameters, fog, the model with its other effects (None: the base
+    model alone), the seed of the effects' draws and the camera noise. The camera is the renderer's when the
+    frame renders."""
+
+    pose: np.ndarray
+    image: bool
+    params: np.ndarray
+    fog: str
+    model: Optional[UnderwaterModel]
+    seed: Optional[int]
+    noise_sigma: float
+    noise_seed: Optional[int]
 
 
 @dataclass
@@ -31,6 +52,7 @@ class SimFrame:
 
     image: np.ndarray     # (H, W, 3) float32 in [0, 1]: the underwater image (None: geometry only)
     render: object        # uw_sil.sim.render.RenderResult: clean rgb, depth, range, labels
+    camera: Optional[CameraModel] = None     # the camera it was rendered with
 
     def image_uint8(self) -> np.ndarray:
         return np.clip(np.rint(self.image * 255.0), 0, 255).astype(np.uint8)
@@ -67,6 +89,7 @@ class SimCamera:
         self.noise_sigma = noise_sigma
         self.effects = effects
         self._rng = np.random.default_rng(seed)
+        self._gl = threading.Lock()       # the OpenGL context: one render or camera change at a time
         self.renderer = Renderer(model, camera=camera or CameraModel.from_fov())
 
     @property
@@ -116,25 +139,63 @@ class SimCamera:
 
     @camera.setter
     def camera(self, cam: CameraModel):
-        if cam != self.renderer.camera:
-            self.renderer.camera = cam
+        """Frames rendered from now on use ``cam`` (a new size sets up the renderer now, waiting for a render
+        another thread may be running)."""
+        with self._gl:
+            if cam != self.renderer.camera:
+                self.renderer.camera = cam
 
     def render(self, T_cam_panel, image: bool = True) -> SimFrame:
         """The frame seen with pose ``T_cam_panel``. ``image=False``: the render's geometry only (depth, range,
         labels: what e.g. an enhancer needs), no colour pass and no underwater model; ``image`` and ``render.rgb``
-        are then None."""
-        rr = self.renderer.render(T_cam_panel, colour=image)
-        if not image:
-            return SimFrame(None, rr)
+        are then None.
+
+        With an active ``pose_error`` the frame is rendered from the corrected pose ``Delta @ T_cam_panel`` (image,
+        depth and labels alike): the exact view, where a fit (which has one render per frame) warps the render
+        made at the recorded pose (:func:`uw_sil.sim.effects.pose_error.warp_geometry`).
+
+        The same as ``finish(*render_job(plan(T_cam_panel, image)))``: the three steps that
+        :class:`uw_sil.sim.stream.FrameStream` runs on different threads."""
+        return self.finish(*self.render_job(self.plan(T_cam_panel, image)))
+
+    def plan(self, T_cam_panel, image: bool = True) -> FrameJob:
+        """Everything a frame depends on but the camera, fixed now: the parameters and effects as they are, the
+        frame's random draws (in call order) and the pose to render."""
+        T = np.asarray(T_cam_panel, dtype=float)
+        model, seed, noise_seed = None, None, None
         if self._effects:
-            img = UnderwaterModel(self.params, self._effects, self.fog).degrade(
-                rr, self.camera, rng=self._rng, pose=T_cam_panel)
+            seed = int(self._rng.integers(0, 2 ** 63))
+            effects = dict(self._effects)
+            pe = effects.pop(PoseError.name, None)
+            if pe is not None and not get_effect(PoseError.name).is_identity(pe):
+                T = get_effect(PoseError.name).correction(pe, effect_rng(seed, PoseError.name)) @ T
+            model = UnderwaterModel(self.params, effects, self.fog)
+        if image and self._noise_sigma > 0:
+            noise_seed = int(self._rng.integers(0, 2 ** 63))
+        return FrameJob(T, bool(image), self.params.as_vector(), self.fog, model, seed, self._noise_sigma, noise_seed)
+
+    def render_job(self, job: FrameJob) -> tuple:
+        """The OpenGL passes of a planned frame with the current camera (:meth:`Renderer.draw
+        <uw_sil.sim.render.Renderer.draw>`): ``(job, raw)`` for :meth:`finish`."""
+        with self._gl:
+            return job, self.renderer.draw(job.pose, colour=job.image)
+
+    def finish(self, job: FrameJob, raw) -> SimFrame:
+        """The render's geometry and shading and the underwater image of a planned frame (no OpenGL and no shared
+        state: frames can finish side by side)."""
+        rr, camera = self.renderer.develop(raw), raw.camera
+        if not job.image:
+            return SimFrame(None, rr, camera)
+        if job.model is not None:
+            img = job.model.prepare(rr, camera, pose=job.pose, seed=job.seed)(
+                job.model.params.as_vector(), job.model.effect_vector())
         else:
-            img = degrade(rr.rgb, rr.range, rr.depth, self.params.as_vector(), fog=self.fog)
-        if self._noise_sigma > 0:
-            img += self._rng.standard_normal(img.shape, dtype=np.float32) * np.float32(self._noise_sigma / 255.0)
+            img = degrade(rr.rgb, rr.range, rr.depth, job.params, fog=job.fog)
+        if job.noise_seed is not None:
+            noise = np.random.default_rng(job.noise_seed).standard_normal(img.shape, dtype=np.float32)
+            img += noise * np.float32(job.noise_sigma / 255.0)
             np.clip(img, 0.0, 1.0, out=img)
-        return SimFrame(img, rr)
+        return SimFrame(img, rr, camera)
 
     def close(self):
         self.renderer.close()

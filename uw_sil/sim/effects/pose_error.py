@@ -14,8 +14,10 @@ wherever the surface seen at a pixel does not change (everything but a band at d
 the width of the parallax, a few pixels for centimetre errors). Colours are interpolated bilinearly
 inside surfaces, labels, depth and normals taken from the nearest pixel; a pixel whose surface point
 does not project back onto it (within a pixel) sees what the recorded view did not (image border,
-disoccluded background) and becomes water. Signature: an edge-aligned residual that
-shifts with the pose. ``restore`` uses the corrected geometry (bias only).
+disoccluded background) and becomes water. The simulated camera (:class:`uw_sil.sim.simcam.SimCamera`,
+``sim_camera``, ``uw-sil synth``), which renders every frame anyway, renders the corrected pose instead: the
+exact view, at no cost. Signature: an edge-aligned residual that shifts with the pose. ``restore`` uses the
+corrected geometry (bias only).
 """
 from __future__ import annotations
 

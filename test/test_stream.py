@@ -1,0 +1,73 @@
+"""Frames of the simulated camera side by side (uw_sil.sim.stream)."""
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from uw_sil.sim.camera import CameraModel
+from uw_sil.sim.scene import facing_pose
+from uw_sil.sim.simcam import SimCamera
+from uw_sil.sim.stream import FrameStream
+
+CAM = CameraModel.from_fov(80, 60)
+POSES = [facing_pose(3.0 - 0.2 * k, yaw=0.05 * k) for k in range(8)]
+KW = dict(camera=CAM, effects="marine_snow=strong,sensor_noise=mild,pose_error=mild", noise_sigma=1.5, seed=9)
+
+
+def test_frames_come_out_in_order_and_equal_to_one_at_a_time_even_when_models_finish_out_of_order():
+    with SimCamera(**KW) as cam:
+        ref = [cam.render(T) for T in POSES]
+    with SimCamera(**KW) as cam:
+        finish, calls, order = cam.finish, iter(range(100)), []
+
+        def slow_even(job, raw):            # every other model takes longer: later frames finish first
+            k = next(calls)
+            if k % 2 == 0:
+                time.sleep(0.05)
+            frame = finish(job, raw)
+            order.append(k)
+            return frame
+
+        cam.finish = slow_even
+        got, threads = [], set()
+        with FrameStream(cam, lambda tag, f, e: (got.append((tag, f, e)), threads.add(threading.get_ident())),
+                         workers=3) as stream:
+            for k, T in enumerate(POSES):
+                stream.submit(T, tag=k)
+    assert order != sorted(order)                          # the models did finish out of order
+    assert [t for t, _, _ in got] == list(range(len(POSES)))
+    assert all(e is None for _, _, e in got)
+    for (_, f, _), r in zip(got, ref):
+        np.testing.assert_array_equal(f.image, r.image)
+        np.testing.assert_array_equal(f.render.depth, r.render.depth)
+    assert threading.get_ident() not in threads
+
+
+def test_a_failed_frame_is_delivered_as_its_error_and_the_others_still_come():
+    with SimCamera(camera=CAM) as cam:
+        got = []
+        with FrameStream(cam, lambda tag, f, e: got.append((tag, f is not None, type(e).__name__))) as stream:
+            stream.submit(POSES[0], tag="a")
+            stream.submit(np.full((4, 4), np.nan), tag="bad")     # the renderer rejects it
+            stream.submit(POSES[1], tag="b")
+    assert got == [("a", True, "NoneType"), ("bad", False, "ValueError"), ("b", True, "NoneType")]
+
+
+def test_an_exception_in_deliver_is_raised_by_close_after_every_frame_was_delivered():
+    seen = []
+
+    def deliver(tag, frame, error):
+        seen.append(tag)
+        if tag == 1:
+            raise KeyError("publisher gone")
+
+    with SimCamera(camera=CAM) as cam:
+        stream = FrameStream(cam, deliver, workers=2)
+        for k in range(4):
+            stream.submit(POSES[k], image=False, tag=k)
+        with pytest.raises(KeyError, match="publisher gone"):
+            stream.close()
+        with pytest.raises(RuntimeError, match="closed"):
+            stream.submit(POSES[0])
+    assert seen == [0, 1, 2, 3]
