@@ -13,6 +13,13 @@ the one-at-a-time figures.
 
 Last line: ``simcam: every effect <hz> Hz streamed (<ms> ms/frame one at a time; reference <ms> ms, <r>x);
 base model <hz> Hz streamed (...)``.
+
+``--ros RATE``: the node itself. ``sim_camera`` of each checkout is started (``python -m uw_sil.nodes.entry``,
+``reliable_output``, otherwise its defaults: ``queue_size`` 1, a live camera that renders the newest pose),
+and this process publishes the approach's poses at RATE Hz for ``--seconds`` and counts the ``sim/image_raw``
+frames that come back and their latency (pose publication to arrival). ``--effects`` (default none: the base
+model) is the node's ``effects`` parameter. Last line: ``simcam-ros: rate=<R>Hz this out=<n>/<N> (<hz> Hz,
+p50 <ms> ms) reference out=<n>/<N> (...)``.
 """
 import argparse
 import json
@@ -71,14 +78,131 @@ def run(root: str, frames: int, workers: int) -> dict:
     return {r["config"]: r for r in map(json.loads, out.stdout.split("\n")[:-1])}
 
 
+def run_ros(root: str, rate: float, seconds: float, frames: int, effects: str, domain: int, workers=None) -> dict:
+    """The ``sim_camera`` node of ``root`` fed poses at ``rate``: frames out, output rate, latency."""
+    import threading
+    import time
+
+    import numpy as np
+    import rclpy
+    from geometry_msgs.msg import PoseStamped
+    from rclpy.context import Context
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import Image
+
+    from uw_sil.nodes import use_fastdds_profile
+    from uw_sil.sim.scene import facing_pose
+    from uw_sil.sim.transforms import matrix_to_pose
+
+    env = dict(os.environ, PYTHONPATH=root, ROS_DOMAIN_ID=str(domain))
+    use_fastdds_profile(env)
+    use_fastdds_profile()
+    cmd = [sys.executable, "-m", "uw_sil.nodes.entry", "sim_camera", "--ros-args", "-p", "reliable_output:=true"]
+    if effects:
+        cmd += ["-p", f"effects:={effects}"]
+    if workers:
+        cmd += ["-p", f"workers:={workers}"]
+    proc = subprocess.Popen(cmd, env=env, cwd=root, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    log = []
+    threading.Thread(target=lambda: log.extend(iter(proc.stdout.readline, "")), daemon=True).start()
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=domain)
+    node = Node("bench_simcam", context=ctx)
+    pub = node.create_publisher(PoseStamped, "panel/pose", 10)
+    sent, got = {}, {}
+    node.create_subscription(Image, "sim/image_raw",
+                             lambda m: got.setdefault(m.header.stamp.sec * 10**9 + m.header.stamp.nanosec,
+                                                      time.monotonic_ns()),
+                             QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
+    ex = SingleThreadedExecutor(context=ctx)
+    ex.add_node(node)
+    poses = [matrix_to_pose(facing_pose(4.0 - 2.7 * k / max(frames - 1, 1), yaw=0.12 * np.sin(k / 4)))
+             for k in range(frames)]
+    try:
+        deadline = time.monotonic() + 120
+        while pub.get_subscription_count() == 0 or node.count_publishers("sim/image_raw") == 0:
+            if time.monotonic() > deadline or proc.poll() is not None:
+                raise RuntimeError(f"{root}: sim_camera did not come up:\n" + "".join(log[-30:]))
+            ex.spin_once(timeout_sec=0.05)
+        time.sleep(1.0)
+        period, k = 1.0 / rate, 0
+        t_next = time.monotonic()
+        end = t_next + seconds
+        while time.monotonic() < end:
+            pos, q = poses[k % len(poses)]
+            msg = PoseStamped()
+            ns = time.monotonic_ns()
+            msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(ns, 10**9)
+            msg.header.frame_id = "camera_optical_frame"
+            msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = (float(v) for v in pos)
+            (msg.pose.orientation.x, msg.pose.orientation.y, msg.pose.orientation.z,
+             msg.pose.orientation.w) = (float(v) for v in q)
+            pub.publish(msg)
+            sent[ns] = ns
+            k += 1
+            t_next += period
+            while time.monotonic() < t_next:
+                ex.spin_once(timeout_sec=max(0.0, t_next - time.monotonic()))
+        t_drain = time.monotonic() + 5.0
+        while time.monotonic() < t_drain:
+            ex.spin_once(timeout_sec=0.05)
+    finally:
+        import signal
+
+        ex.shutdown()
+        node.destroy_node()
+        ctx.try_shutdown()
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGINT)
+            try:
+                proc.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+    lat = sorted((got[t] - t) / 1e6 for t in got if t in sent)
+    stamps = sorted(got)
+    span = (stamps[-1] - stamps[0]) / 1e9 if len(stamps) > 1 else float("nan")
+    return {"sent": len(sent), "out": len(lat), "hz": (len(stamps) - 1) / span if len(stamps) > 1 else 0.0,
+            "p50_ms": lat[len(lat) // 2] if lat else float("nan"),
+            "p95_ms": lat[int(len(lat) * 0.95)] if lat else float("nan")}
+
+
+def main_ros(a, roots) -> int:
+    runs = {k: [] for k in roots}
+    for rep in range(a.repeats):
+        for i, (k, root) in enumerate(roots.items()):
+            r = run_ros(root, a.ros, a.seconds, a.frames, a.effects, 170 + (os.getpid() + 2 * rep + i) % 60,
+                        a.workers if k == "this" else None)
+            runs[k].append(r)
+            print(f"# run {rep + 1}/{a.repeats} {k}: out {r['out']}/{r['sent']}, {r['hz']:.1f} Hz, "
+                  f"latency p50 {r['p50_ms']:.0f} ms p95 {r['p95_ms']:.0f} ms, load {os.getloadavg()[0]:.2f}",
+                  flush=True)
+
+    def summary(k):
+        rs = runs[k]
+        med = lambda f: statistics.median(r[f] for r in rs)       # noqa: E731
+        return (f"out={'/'.join(str(r['out']) for r in rs)}/{rs[0]['sent']} ({med('hz'):.1f} Hz, "
+                f"p50 {med('p50_ms'):.0f} ms)")
+
+    print(f"simcam-ros: rate={a.ros:g}Hz effects={a.effects or 'none'} "
+          + " ".join(f"{k} {summary(k)}" for k in roots))
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--baseline", help="checkout of the reference code")
     ap.add_argument("--repeats", type=int, default=1)
     ap.add_argument("--frames", type=int, default=24)
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--ros", type=float, default=0.0, help="the node fed poses at this rate (Hz)")
+    ap.add_argument("--seconds", type=float, default=20.0, help="--ros: how long the poses come")
+    ap.add_argument("--effects", default="", help="--ros: the node's effects parameter (default: none)")
     a = ap.parse_args(argv)
     roots = {"this": THIS} | ({"reference": os.path.abspath(a.baseline)} if a.baseline else {})
+    if a.ros:
+        return main_ros(a, roots)
     runs = {k: [] for k in roots}
     for rep in range(a.repeats):
         for k, root in roots.items():

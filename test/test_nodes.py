@@ -113,13 +113,15 @@ class Probe(Node):
         return None
 
 
-def test_sim_camera_renders_poses_and_takes_parameters_live(ros):
+@pytest.mark.parametrize("workers", [0, 2])
+def test_sim_camera_renders_poses_and_takes_parameters_live(ros, workers):
+    """The same frames whether made in the pose's callback or by model threads (``workers``: uw_sil.sim.stream)."""
     from uw_sil.nodes.sim_camera import SimCameraNode
 
     start = UnderwaterParams(a=(0.3, 0.1, 0.05), b=(0.1, 0.3, 0.4), rho_f=0.05)
     overrides = [Parameter(n, value=v) for n, v in start.as_dict().items()]
     overrides += [Parameter("width", value=SMALL.width), Parameter("height", value=SMALL.height),
-                  Parameter("hfov_deg", value=70.0)]
+                  Parameter("hfov_deg", value=70.0), Parameter("workers", value=workers)]
     sim = SimCameraNode(context=ros, parameter_overrides=overrides)
     probe = Probe(ros)
     ex = SingleThreadedExecutor(context=ros)

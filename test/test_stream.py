@@ -71,3 +71,22 @@ def test_an_exception_in_deliver_is_raised_by_close_after_every_frame_was_delive
         with pytest.raises(RuntimeError, match="closed"):
             stream.submit(POSES[0])
     assert seen == [0, 1, 2, 3]
+
+
+def test_stream_frames_yields_the_frames_in_order_raises_a_failure_and_can_be_left_early():
+    from uw_sil.sim.stream import stream_frames
+
+    with SimCamera(**KW) as cam:
+        ref = [cam.render(T).image for T in POSES]
+    with SimCamera(**KW) as cam:
+        got = [f.image for f in stream_frames(cam, POSES)]
+    assert len(got) == len(ref) and all(np.array_equal(a, b) for a, b in zip(got, ref))
+    with SimCamera(camera=CAM) as cam:
+        frames = stream_frames(cam, [POSES[0], np.full((4, 4), np.nan), POSES[1]])
+        assert next(frames).image is not None
+        with pytest.raises(ValueError, match="finite"):
+            next(frames)
+        frames = stream_frames(cam, POSES)
+        next(frames)
+        frames.close()                              # the rest is made and dropped; the camera is free again
+        assert cam.render(POSES[2]).image is not None

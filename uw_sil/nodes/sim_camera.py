@@ -15,9 +15,11 @@ Parameters (live, validated; set with ``ros2 param set`` or the parameter servic
     ``a_r a_g a_b`` attenuation [1/m], ``b_r b_g b_b`` background [0..1], ``rho_f`` fog density [1/m],
     ``fog_mode`` (exp2|exp|none), ``noise_sigma`` (camera noise in grey levels); read-only: ``model_path``, ``width``, ``height``, ``hfov_deg``,
     ``queue_size`` (1: poses arriving while a frame renders replace each other, so the newest is
-    rendered next; raise it to render every pose of a burst, at the cost of latency), ``workers`` (threads
-    running the underwater model of frames side by side while the next one renders, default 2:
-    :mod:`uw_sil.sim.stream`; frames are published in pose order), ``reliable_output``
+    rendered next; raise it to render every pose of a burst, at the cost of latency), ``workers`` (default 0:
+    each frame rendered, modelled and published in its pose's callback; N > 0: N threads run the underwater
+    model of frames side by side while the next one renders, :mod:`uw_sil.sim.stream`, frames published in
+    pose order, with ``queue_size`` 1 the newest pose rendered as soon as fewer than N + 1 frames are on their
+    way: more frames per second at more latency, see the README), ``reliable_output``
     (false: the sim/* topics with sensor-data QoS; true, as in a replayed bag: reliable, keep-last 10,
     so that no rendered frame is lost).
     ``effects`` (string, default ""): effects of :mod:`uw_sil.sim.effects` added to the model,
@@ -108,9 +110,10 @@ def _descriptor(name: str) -> ParameterDescriptor:
             description="poses queued while a frame renders (1: the newest replaces older ones); read at start",
             read_only=True, integer_range=_int_range(1, 1000)),
         "workers": lambda: ParameterDescriptor(
-            description="threads running the underwater model of frames side by side, while the next frame "
-                        "renders (uw_sil.sim.stream); read at start", read_only=True,
-            integer_range=_int_range(1, 16)),
+            description="threads running the underwater model of frames side by side while the next frame renders "
+                        "(uw_sil.sim.stream; more frames per second, more latency); 0: one frame at a time in the "
+                        "pose callback; read at start", read_only=True,
+            integer_range=_int_range(0, 16)),
     }[name]()
 
 
@@ -140,7 +143,7 @@ class SimCameraNode(Node):
             self.declare_parameter(n, defaults[n], _descriptor(n))
         for n, default in (("fog_mode", "exp2"), ("noise_sigma", 0.0), ("model_path", ""), ("width", 640),
                            ("height", 480), ("hfov_deg", 70.0), ("queue_size", 1), ("extensible_effects", ""),
-                           ("camera_info_file", ""), ("reliable_output", False), ("workers", 2)):
+                           ("camera_info_file", ""), ("reliable_output", False), ("workers", 0)):
             self.declare_parameter(n, default, _descriptor(n))
         self._extensible = _effect_list(self.get_parameter("extensible_effects").value, "extensible_effects")
         effects = _descriptor("effects")
@@ -162,8 +165,12 @@ class SimCameraNode(Node):
         self.sim = SimCamera(self._params_from(dict()), camera=camera, model=g("model_path").value or None,
                              fog=g("fog_mode").value, noise_sigma=g("noise_sigma").value,
                              effects=self._effects_from(dict()))
-        # the render of the next pose while the model of the last ones runs; frames published in pose order
-        self.stream = FrameStream(self.sim, self._publish, workers=g("workers").value)
+        # workers > 0: the render of the next pose while the model of the last ones runs, frames published in pose
+        # order; a live camera (queue_size 1) renders the newest pose, older waiting poses dropped. 0: each frame
+        # rendered, modelled and published in the pose's callback (the least latency).
+        workers = g("workers").value
+        self.stream = (FrameStream(self.sim, self._publish, workers=workers, newest_only=g("queue_size").value == 1)
+                       if workers > 0 else None)
         # Check a whole batch first, apply it only once every entry has passed (and rclpy has stored it):
         # a batch rejected by its last entry changes nothing.
         self.add_on_set_parameters_callback(self._on_set_parameters)
@@ -293,11 +300,14 @@ class SimCameraNode(Node):
         # mask (the colour pass, the shading and the underwater model are most of a 640x480 frame's time).
         wanted = [p for p in (self.pub_image, self.pub_clean, self.pub_depth, self.pub_mask)
                   if p.get_subscription_count() > 0]
-        self.stream.submit(T, image=self.pub_image in wanted or self.pub_clean in wanted,
-                           tag=(msg.header, wanted))
+        image = self.pub_image in wanted or self.pub_clean in wanted
+        if self.stream is None:
+            self._publish((msg.header, wanted), self.sim.render(T, image=image), None)
+        else:
+            self.stream.submit(T, image=image, tag=(msg.header, wanted))
 
     def _publish(self, tag, frame, error):
-        """A finished frame (from the stream's threads, in pose order)."""
+        """A finished frame (in pose order; from the stream's threads with ``workers`` > 0)."""
         header, wanted = tag
         if error is not None:
             self.get_logger().error(f"frame at {header.stamp.sec}.{header.stamp.nanosec:09d} failed: {error!r}",
