@@ -4,10 +4,10 @@ For the base model, each effect alone (its ``strong`` preset) and every effect a
 640x480 approach (``--frames`` poses from 4.0 m to 1.3 m with yaw and pitch) rendered one at a time as
 :meth:`uw_sil.sim.simcam.SimCamera.render` does (ms per frame, and the cost of the effect: that minus the base
 model's), and through :class:`uw_sil.sim.stream.FrameStream` with ``--workers`` model threads (frames per
-second), as ``uw-sil synth`` and ``sim_camera`` with ``workers`` make them; the better of two passes of each. Each checkout runs in a fresh Python process; with ``--baseline DIR``
-(a checkout of the reference code, e.g. ``git worktree add --detach /tmp/base <commit>``) the reference
-runs too, alternating, and the ratios are taken within the run. A reference without the stream gets only
-the one-at-a-time figures.
+second), as ``uw-sil synth`` and ``sim_camera`` with ``workers`` make them; the better of two passes of
+each. Each checkout runs in a fresh Python process; with ``--baseline DIR`` (a checkout of the reference
+code, e.g. ``git worktree add --detach /tmp/base <commit>``) the reference runs too, alternating, and the
+ratios are taken within the run. A reference without the stream gets only the one-at-a-time figures.
 
     .venv/bin/python bench/bench_simcam.py [--baseline DIR] [--repeats 1] [--frames 24] [--workers 2]
 
@@ -15,7 +15,8 @@ Last line: ``simcam: every effect <hz> Hz streamed (<ms> ms/frame one at a time;
 base model <hz> Hz streamed (...)``.
 
 ``--ros RATE``: the node itself. ``sim_camera`` of each checkout is started (``python -m uw_sil.nodes.entry``,
-``reliable_output``, otherwise its defaults: ``queue_size`` 1, a live camera that renders the newest pose),
+``reliable_output``, otherwise its defaults: ``queue_size`` 1, a live camera that renders the newest pose;
+this checkout's with ``workers`` = ``--workers``),
 and this process publishes the approach's poses at RATE Hz for ``--seconds`` and counts the ``sim/image_raw``
 frames that come back and their latency (pose publication to arrival). ``--effects`` (default none: the base
 model) is the node's ``effects`` parameter. Last line: ``simcam-ros: rate=<R>Hz this out=<n>/<N> (<hz> Hz,
