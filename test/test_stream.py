@@ -90,3 +90,24 @@ def test_stream_frames_yields_the_frames_in_order_raises_a_failure_and_can_be_le
         next(frames)
         frames.close()                              # the rest is made and dropped; the camera is free again
         assert cam.render(POSES[2]).image is not None
+
+
+def test_newest_only_drops_waiting_frames_never_the_newest_and_delivers_in_order():
+    """A live camera: poses faster than frames are made; the ones that waited are replaced, the rest come out in
+    order, and the last pose submitted is always made."""
+    with SimCamera(camera=CAM) as cam:
+        finish = cam.finish
+
+        def slow(job, raw):
+            time.sleep(0.03)
+            return finish(job, raw)
+
+        cam.finish = slow
+        got = []
+        with FrameStream(cam, lambda tag, f, e: got.append((tag, e)), workers=1, newest_only=True) as stream:
+            for k in range(12):                    # a burst: each frame takes at least 30 ms
+                stream.submit(POSES[k % len(POSES)], tag=k)
+    tags = [t for t, _ in got]
+    assert all(e is None for _, e in got)
+    assert tags == sorted(tags) and tags[-1] == 11
+    assert stream.dropped > 0 and len(tags) + stream.dropped == 12
