@@ -331,11 +331,13 @@ class SimCameraNode(Node):
     def destroy_node(self):
         # Also for a node whose constructor was interrupted (Ctrl-C while the renderer starts): rclpy
         # destroys the nodes of a context at shutdown, built or not.
-        if getattr(self, "stream", None) is not None:
-            self.stream.close(cancel=True)
-        if getattr(self, "sim", None) is not None:
-            self.sim.close()
-        super().destroy_node()
+        try:
+            if getattr(self, "stream", None) is not None:
+                self.stream.close(cancel=True)       # raises what publishing a frame raised
+        finally:
+            if getattr(self, "sim", None) is not None:
+                self.sim.close()
+            super().destroy_node()
 
 
 def main(args=None):
