@@ -58,8 +58,9 @@ def trial_frames(n: int, camera: CameraModel):
         return [(add_sensor_noise(sim.render(T).image, SensorNoise(), rng), T) for T in poses]
 
 
-def _close(ex, node, ctx, proc):
-    """Shut the bench's own node down, then stop the graph process (SIGINT, killed after 30 s)."""
+def close_graph(ex, node, ctx, proc):
+    """Shut the bench's own node down, then stop the graph process (SIGINT, killed after 30 s). Also used by
+    ``bench_simcam.py --ros``."""
     import signal
 
     ex.shutdown()
@@ -156,7 +157,7 @@ def run_rate(rate: float, seconds: float, frames, camera: CameraModel, fit_yaml:
         while len(status) == n_status and time.monotonic() < t_status:
             ex.spin_once(timeout_sec=0.05)
     finally:
-        _close(ex, node, ctx, proc)
+        close_graph(ex, node, ctx, proc)
     s = status[-1] if status else {}
     e2e = np.array([(got[t] - sent[t]) / 1e6 for t in got if t in sent])
     drops = s.get("dropped_queue", 0) + s.get("dropped_unpaired", 0) + s.get("dropped_bad", 0)
@@ -254,7 +255,7 @@ def diagnose_live(bag: Path, out: Path, k: int, max_effects: int, effects: str, 
         while not model and time.monotonic() < t_end:
             ex.spin_once(timeout_sec=0.05)
     finally:
-        _close(ex, node, ctx, proc)
+        close_graph(ex, node, ctx, proc)
     final = next(t for t in status if t.startswith(("done:", "failed:")))
     if not final.startswith("done:") or not model or not frames:
         raise RuntimeError(f"live diagnosis: {final}; frames seen {len(frames)}, sim_camera events {len(model)}\n"

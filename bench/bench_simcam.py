@@ -97,6 +97,7 @@ def run_ros(root: str, rate: float, seconds: float, frames: int, effects: str, d
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import Image
 
+    from bench_ros import close_graph     # this directory: the scripts' own (sys.path[0] when run)
     from uw_sil.nodes import use_fastdds_profile
     from uw_sil.sim.scene import facing_pose
     from uw_sil.sim.transforms import matrix_to_pose
@@ -154,17 +155,7 @@ def run_ros(root: str, rate: float, seconds: float, frames: int, effects: str, d
         while time.monotonic() < t_drain:
             ex.spin_once(timeout_sec=0.05)
     finally:
-        import signal
-
-        ex.shutdown()
-        node.destroy_node()
-        ctx.try_shutdown()
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGINT)
-            try:
-                proc.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                proc.kill()
+        close_graph(ex, node, ctx, proc)
     lat = sorted((got[t] - t) / 1e6 for t in got if t in sent)
     stamps = sorted(got)
     span = (stamps[-1] - stamps[0]) / 1e9 if len(stamps) > 1 else float("nan")
