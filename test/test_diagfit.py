@@ -132,3 +132,52 @@ def test_a_least_squares_fit_leaves_the_neutral_value_of_a_capped_effect(near_fr
     x = ls_fit(model, model.x0(base, {"vignetting": {}}), stride=1, max_nfev=20)
     got = model.params_of(x)["effects"]["vignetting"]
     assert got == pytest.approx(truth, abs=0.01), got
+
+
+def test_the_vignetting_refit_starts_from_the_cos_law_of_the_camera_where_a_flat_start_cannot_move(near_frame):
+    """Where the capped falloff is 1 over the whole image (k1 > 0 with a small k2, where a screening proxy may put
+    the start) no step of either sign changes the image, and least squares stays where it started: next to fitted
+    lamps the vignetting refits of physically lit dives never left their start. The plug-in's least-squares starts
+    are the ``cos^n`` falloffs of the camera's own field angle (the cos^4 law of natural vignetting, and cos^2),
+    fitted by the polynomial; from them the fit recovers the vignetting of frames simulated with it."""
+    from dataclasses import replace
+    from types import SimpleNamespace
+
+    from uw_sil.fit.diagfit import ls_fit
+    from uw_sil.fit.judges import JUDGES
+    from uw_sil.fit.judges.vignetting import cos_law_start
+
+    rf = reduce_frame(near_frame, 4)
+    base = np.array([0.4, 0.1, 0.08, 0.05, 0.15, 0.2, 0.1])
+    truth = {"k1": -0.4, "k2": -0.1, "cx": 0.05, "cy": -0.03}
+    model = EffectModel([rf], ("vignetting",), fog="exp2", seed=0)
+    image = model.simulate(0, model.x0(base, {"vignetting": truth})[None])[0] * 255.0
+    model = EffectModel([replace(rf, image=image)], ("vignetting",), fog="exp2", seed=0)
+
+    flat = {"k1": 0.2, "k2": -0.1, "cx": 0.0, "cy": 0.0}
+    x = ls_fit(model, model.x0(base, {"vignetting": flat}), stride=1, max_nfev=20)
+    assert model.params_of(x)["effects"]["vignetting"] == pytest.approx(flat, abs=1e-6)
+
+    starts = JUDGES["vignetting"].ls_starts(SimpleNamespace(camera=near_frame.camera))
+    assert starts == (cos_law_start(near_frame.camera, 4), cos_law_start(near_frame.camera, 2))
+    for s in starts:
+        x = ls_fit(model, model.x0(base, {"vignetting": s}), stride=1, max_nfev=20)
+        assert model.params_of(x)["effects"]["vignetting"] == pytest.approx(truth, abs=0.01), s
+
+
+def test_cos_law_start_matches_the_falloff_of_the_field_angle():
+    """The polynomial start of a 50° camera follows cos^2 of the field angle within 1 % at the corner and halfway
+    there; the cos^4 law of a wide camera falls below the polynomial's box and is held at its bounds."""
+    from uw_sil.fit.judges.vignetting import cos_law_start
+    from uw_sil.sim.camera import CameraModel
+    from uw_sil.sim.effects import get_effect
+
+    cam = CameraModel.from_fov(640, 480, 50.0)
+    s = cos_law_start(cam, 2)
+    half_diag = np.hypot(320, 240)
+    for rho in (0.5, 1.0):
+        t2 = (rho * half_diag / cam.fx) ** 2
+        assert 1 + s["k1"] * rho ** 2 + s["k2"] * rho ** 4 == pytest.approx(1 / (1 + t2), abs=0.01)
+    b = {p.name: (p.lo, p.hi) for p in get_effect("vignetting").params}
+    wide = cos_law_start(CameraModel.from_fov(640, 480, 90.0), 4)
+    assert (wide["k1"], wide["k2"]) == (b["k1"][0], b["k2"][1])
