@@ -89,6 +89,38 @@ def test_a_pose_correction_below_a_quarter_pixel_is_not_named():
     assert judge.accept(refit(4 * MIN_SHIFT_PX), current, 0.003)[0] is True
 
 
+def test_a_pose_correction_renders_the_scene_at_the_corrected_pose(near_frame):
+    """A corrected pose is rendered, not the recorded render warped: the corrected frame's geometry is the scene
+    seen from ``Delta @ T_recorded`` bit for bit, with that pose, and what only the corrected pose sees (4.8 % of
+    the panel's pixels here) is there, where a warp of the recorded render has nothing. A seafloor is
+    applied after, to that render; no correction returns the frame itself."""
+    from uw_sil.fit.residuals import corrected_frame, frame_geometry
+    from uw_sil.sim.effects import get_effect
+    from uw_sil.sim.render import Renderer
+
+    pose = {"tx": 0.15, "ry": 0.05}
+    eff = get_effect("pose_error")
+    T = eff.correction(eff.values(pose)) @ near_frame.pose
+    with Renderer(camera=near_frame.camera) as r:
+        want = r.render(T)
+    got = corrected_frame(near_frame, {"pose_error": pose})
+    np.testing.assert_array_equal(got.render.depth, want.depth)
+    np.testing.assert_array_equal(got.render.part_ids, want.part_ids)
+    np.testing.assert_array_equal(got.render.rgb, want.rgb)
+    np.testing.assert_array_equal(got.pose, T)
+    assert got.coverage == pytest.approx(float(np.isfinite(want.range).mean()))
+    _, warped = frame_geometry(near_frame, {"pose_error": pose})
+    seen = np.isfinite(want.depth)
+    assert (seen & ~warped.hit).sum() > 0.01 * seen.sum(), "the warp should miss what only the new pose sees"
+
+    floor = {"floor_y": -0.5, "albedo": 0.6, "contrast": 0.5}
+    both = corrected_frame(near_frame, {"pose_error": pose, "unmodeled_geometry": floor})
+    _, g = frame_geometry(got, {"unmodeled_geometry": floor})
+    np.testing.assert_array_equal(both.render.depth, g.depth)
+    assert np.isfinite(both.render.depth).sum() > seen.sum()
+    assert corrected_frame(near_frame, {"pose_error": {}}) is near_frame
+
+
 @pytest.mark.parametrize("factor", [2, 3, 6])
 def test_a_frame_of_any_size_reduces_to_a_camera_of_its_blocks(factor):
     """Recordings come in any size: a 161x121 frame reduced by 2, 3 or 6 drops its incomplete last blocks, and

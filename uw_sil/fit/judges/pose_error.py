@@ -1,14 +1,14 @@
 """Diagnosis plug-in of a recorded pose that is off (:mod:`uw_sil.sim.effects.pose_error`).
 
 Fitted by least squares on the fit frames from the edge shifts of the signature test (both directions
-tried), judged on the held-out frames by θ with the frames' geometry moved at full resolution, or by the
+tried), judged on the held-out frames by θ with the frames rendered at the corrected pose, or by the
 held-out residual (mean squared real - sim, relative improvement per frame, bootstrapped) when θ on reduced
 frames cannot see a sub-pixel shift (θ must then not fall beyond the margin). A correction that moves the
 panel's image by less than :data:`MIN_SHIFT_PX` is not named: warping the geometry by a fraction ``d`` of a
 pixel interpolates its colours bilinearly, which blurs them by ``d (1 - d)`` px², and that blur alone lowers the
 residual of a blurred recording (a 0.1 px "correction" took 8 % of the held-out residual of a trial with
-mild forward scatter and no pose error). An accepted correction is applied to the frames themselves
-(re-rendered geometry) for the rest of the selection.
+mild forward scatter and no pose error). An accepted correction is applied to the frames themselves (rendered
+at the corrected pose, :func:`~uw_sil.fit.residuals.corrected_frame`) for the rest of the selection.
 """
 from __future__ import annotations
 
@@ -113,8 +113,8 @@ class PoseErrorJudge(Judge):
         eh = residual_energy(hmodel, np.stack([hmodel.x0(current.base), x]))
         imp = (eh[0] - eh[1]) / np.maximum(eh[0], 1e-9)
         pose = model.params_of(x)["effects"][self.effect]
-        # held-out θ of the corrected pose: the frames' geometry moved at full resolution, reduced as every
-        # frame is, scored with the current model
+        # held-out θ of the corrected pose: the frames rendered at it (full resolution), reduced as every frame
+        # is, scored with the current model
         sel_c = [corrected_frame(f, {self.effect: pose}) for f in job.sel_f]
         fit_c = [corrected_frame(f, {self.effect: pose}) for f in job.fit_f]
         sel_pf = _score_current(job, current, sel_c, 50)
