@@ -248,7 +248,7 @@ class Judge:
     sigma : float
         Initial CMA-ES step of the effect parameters (fraction of each range).
     alt_starts : tuple of dict
-        Physically far-apart configurations also tried as least-squares starts (:meth:`ls_starts`).
+        Physically far-apart configurations also tried as least-squares starts.
     least_squares : bool
         Whether a least-squares fit from the starts is tried before CMA-ES (smooth deterministic effects).
     absorb : bool
@@ -289,11 +289,6 @@ class Judge:
 
         names = get_effect(self.effect).param_names
         return tuple(self.free) if self.free is not None else tuple(n for n in names if n not in self.fixed)
-
-    def ls_starts(self, job: Job) -> tuple:
-        """Far-apart configurations tried as least-squares starts besides :meth:`start`, over it (the class's
-        :attr:`alt_starts`; a plug-in whose physical starts depend on the camera computes them)."""
-        return self.alt_starts
 
     def neutral(self, values: dict, camera=None) -> bool:
         """Whether these values leave the image as the model without the effect renders it (``camera``: the
@@ -522,7 +517,7 @@ def theta_refit(job: Job, current: Current, judge: Judge, starts: Optional[list]
         lmodel = model.like(job.reduced(job.fit_f, "ls"))
         ls_x = [ls_fit(lmodel, xs, stride=1, max_nfev=job.ls_nfev, interrupt=job.interrupt)
                 for xs in [x_hint] + [lmodel.x0(current.base, {**cur, judge.effect: {**s0, **a}})
-                                      for a in judge.ls_starts(job)] + par]
+                                      for a in judge.alt_starts] + par]
         cand += ls_x
         if current.ls_params is not None:
             # nested: the current model's least-squares optimum with the effect neutral is a candidate too, and

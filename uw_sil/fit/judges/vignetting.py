@@ -8,33 +8,6 @@ import numpy as np
 
 from .base import Judge
 
-#: Exponents ``n`` of the ``cos^n`` falloffs of the field angle tried as least-squares starts: the cos^4 law of a
-#: lens's natural vignetting, and a lens corrected to half of it.
-COS_LAW = (4, 2)
-
-
-def cos_law_start(camera, n: float) -> dict:
-    """``k1, k2`` of the polynomial closest (least squares over the image's pixels) to the ``cos^n`` falloff of
-    the field angle of ``camera``, centred, within the effect's bounds.
-
-    Why these starts: the polynomial is capped at 1, so a refit that starts where it is flat (k1 >= 0, where a
-    screening proxy may put it) or at the neutral values of a nested model has no gradient to leave by; next to
-    fitted lamps, whose beams can take some radial falloff, it never left its neutral start on physically lit
-    dives. A falloff of the lens's own field angle is a start the physics gives for any camera."""
-    from ...sim.effects import get_effect
-
-    h, w = camera.height, camera.width
-    half_diag = math.hypot(w / 2, h / 2)
-    u = (np.arange(w) - camera.cx)[None, :]
-    v = (np.arange(h) - camera.cy)[:, None]
-    t2 = (u / camera.fx) ** 2 + (v / camera.fy) ** 2          # tan^2 of the field angle
-    rho2 = (u * u + v * v) / half_diag ** 2
-    V = (1.0 + t2) ** (-n / 2.0)                             # cos^n
-    A = np.stack([rho2.ravel(), (rho2 * rho2).ravel()], axis=1)
-    k, *_ = np.linalg.lstsq(A, V.ravel() - 1.0, rcond=None)
-    b = {p.name: (p.lo, p.hi) for p in get_effect("vignetting").params}
-    return {"k1": float(np.clip(k[0], *b["k1"])), "k2": float(np.clip(k[1], *b["k2"])), "cx": 0.0, "cy": 0.0}
-
 
 class VignettingJudge(Judge):
     effect = "vignetting"
@@ -62,9 +35,6 @@ class VignettingJudge(Judge):
         return {"k1": float(np.clip(K[0], -1.2, 0.5)), "k2": float(np.clip(K[1], -0.6, 0.6)),
                 "cx": float(np.clip(p.get("cx", 0) * cam.fx / half_diag, -0.2, 0.2)),
                 "cy": float(np.clip(p.get("cy", 0) * cam.fy / half_diag, -0.2, 0.2))}
-
-    def ls_starts(self, job):
-        return tuple(cos_law_start(job.camera, n) for n in COS_LAW)
 
     def neutral(self, values, camera=None):
         """Also values whose falloff is 1 over the whole image of ``camera``: the polynomial is capped at 1, so
