@@ -1,6 +1,5 @@
 """Frames of the simulated camera side by side (uw_sil.sim.stream)."""
 import threading
-import time
 
 import numpy as np
 import pytest
@@ -20,13 +19,18 @@ def test_frames_come_out_in_order_and_equal_to_one_at_a_time_even_when_models_fi
         ref = [cam.render(T) for T in POSES]
     with SimCamera(**KW) as cam:
         finish, calls, order = cam.finish, iter(range(100)), []
+        done = [threading.Event() for _ in POSES]
 
-        def slow_even(job, raw):            # every other model takes longer: later frames finish first
+        def slow_even(job, raw):
+            # every other model waits until the next one has finished: later frames finish first, whatever the
+            # load (a sleep of 50 ms did not reorder them on a loaded machine). Only a stream that cannot run two
+            # models at once would wait out the timeout.
             k = next(calls)
-            if k % 2 == 0:
-                time.sleep(0.05)
+            if k % 2 == 0 and k + 1 < len(POSES):
+                done[k + 1].wait(timeout=60.0)
             frame = finish(job, raw)
             order.append(k)
+            done[k].set()
             return frame
 
         cam.finish = slow_even
@@ -97,16 +101,20 @@ def test_newest_only_drops_waiting_frames_never_the_newest_and_delivers_in_order
     order, and the last pose submitted is always made."""
     with SimCamera(camera=CAM) as cam:
         finish = cam.finish
+        burst_in = threading.Event()
 
         def slow(job, raw):
-            time.sleep(0.03)
+            # no frame is finished before the whole burst is in: poses come faster than frames, whatever the load
+            # (a sleep of 30 ms per frame relied on the submitting thread being faster)
+            burst_in.wait(timeout=60.0)
             return finish(job, raw)
 
         cam.finish = slow
         got = []
         with FrameStream(cam, lambda tag, f, e: got.append((tag, e)), workers=1, newest_only=True) as stream:
-            for k in range(12):                    # a burst: each frame takes at least 30 ms
+            for k in range(12):
                 stream.submit(POSES[k % len(POSES)], tag=k)
+            burst_in.set()
     tags = [t for t, _ in got]
     assert all(e is None for _, e in got)
     assert tags == sorted(tags) and tags[-1] == 11
