@@ -528,7 +528,8 @@ class BackwardFitNode(Node):
         diagnose them in the worker thread."""
         t_collected = time.monotonic()
         try:
-            frames = collector.frames(renderer=self.renderer)
+            # the model too: a pose correction of the diagnosis renders the frames' scene again
+            frames = collector.frames(model=self.get_parameter("model_path").value or None, renderer=self.renderer)
         except ValueError as e:
             self._publish_failure(str(e))
             self._finish(False, f"failed: {e} ({self._inputs()})")
