@@ -233,6 +233,49 @@ def test_coplanar_surfaces_render_the_same_in_every_renderer():
         first.append((out.rgb[hit].mean(axis=0).round(6).tolist(), np.unique(out.part_ids[hit]).tolist()))
     assert first == [([1.0, 0.0, 0.0], [1])] * 8
 
+def test_one_pass_gives_what_the_colour_and_segmentation_passes_give(panel_renderer):
+    """Under OSMesa the node ids ride in the colour pass's alpha (one pass). The same renderer, made to draw its two
+    passes, gives the same albedo, ids and labels and the same depth (up to the last bits of single pixels: the flat
+    and the segmentation shaders transform vertices apart); a wrong id in alpha, a blend of the background into
+    the albedo, or alpha scaled by a texture would show here."""
+    r = panel_renderer
+    assert r._one_pass
+    poses = [TILTED, S.facing_pose(0.6, yaw=0.5, pitch=-0.2), S.facing_pose(6.0, x=1.0, yaw=1.1)]
+    try:
+        one = [r.render(T) for T in poses]
+        r._one_pass = False
+        two = [r.render(T) for T in poses]
+    finally:
+        r._one_pass = True
+    for a, b in zip(one, two):
+        assert len(np.unique(b.part_ids)) > 3
+        np.testing.assert_array_equal(a.part_ids, b.part_ids)
+        np.testing.assert_array_equal(a.labels, b.labels)
+        hit = b.part_ids > 0
+        assert np.abs(a.depth[hit] - b.depth[hit]).max() < 1e-5 and np.isinf(a.depth[~hit]).all()
+        assert (np.abs(a.rgb - b.rgb).max(axis=-1) > 1e-6).sum() <= 2
+
+
+def test_a_model_whose_ids_cannot_ride_in_alpha_renders_in_two_passes():
+    """Over 255 nodes, or a colour with alpha below 1, and the node ids are drawn in their own pass: still exact."""
+    many = trimesh.Scene()
+    for k in range(260):
+        tile = _quad(f"tile{k}", color=(k % 256, 100, 200), size=(0.05, 0.05)).geometry[f"tile{k}"]
+        many.add_geometry(tile, node_name=f"tile{k}", geom_name=f"tile{k}",
+                          transform=trimesh.transformations.translation_matrix([0.06 * (k % 20) - 0.6,
+                                                                                0.06 * (k // 20) - 0.4, 0]))
+    with Renderer(many, camera=SMALL) as r:
+        assert not r._one_pass
+        out = r.render(S.facing_pose(3.0))
+    ids = set(np.unique(out.part_ids).tolist())
+    assert 0 in ids and {1, 256, 260} <= ids        # ids beyond 255 need the pass's second byte
+    seen = _quad("glass")
+    seen.geometry["glass"].visual.vertex_colors = [200, 200, 200, 128]
+    with Renderer(seen, camera=SMALL, shading="flat") as r:
+        assert not r._one_pass
+        assert r.render(S.facing_pose(2.0)).part_ids.max() == 1
+
+
 def test_user_stl_and_labels(tmp_path):
     box = trimesh.creation.box(extents=(0.4, 0.3, 0.05))
     path = tmp_path / "user.stl"
