@@ -241,6 +241,8 @@ def run_node(make_node: Callable, spin: Optional[Callable] = None, args=None, na
     destroyed, rclpy shut down, which removes its Fast DDS shared-memory segments; renderer closed; files
     are written atomically), and the interpreter's own finalization took another 1.3-1.5 s per node
     here, which made a graph need more than 5 s to stop. Otherwise the exit code is returned.
+    Once the node is built, the executables freeze what the start-up left out of the garbage collector's full
+    passes (:func:`_freeze_start_up_heap`).
     The executables' teardown is bounded (:func:`teardown_deadline`): one stuck in the middleware ends
     the process after :data:`TEARDOWN_DEADLINE` with its stacks on stderr and exit code 1.
     """
@@ -463,6 +465,22 @@ def _settle_signals(rclpy):
     _ignore_signals()
 
 
+def _freeze_start_up_heap():
+    """Collect once, then move every object the start-up left (rclpy, scipy, the renderer, the node) to the
+    interpreter's permanent generation (``gc.freeze``), so the garbage collector's full passes no longer walk it.
+
+    A full pass walks every tracked object. In a node at 30 Hz that took 58 and 81 ms in ``sim_camera`` (two passes
+    in 30 s of the forward graph, 640x480): the frames held back by the first were then published together and the
+    enhancer, whose queue holds 2, dropped one (a frame 326 of 900 in 5 of 6 runs, before and after the one-pass
+    render). Frozen, a full pass took 0.3 ms and the run lost none. What the node creates later is collected as
+    before; the frozen objects are its lifetime's anyway (only node executables do this: they own their
+    process)."""
+    import gc
+
+    gc.collect()
+    gc.freeze()
+
+
 def _run_node(make_node, spin, args, name, user_errors, exit_process: bool = True) -> int:
     profile = use_fastdds_profile()
     stale = clean_stale_shm_segments()
@@ -485,6 +503,8 @@ def _run_node(make_node, spin, args, name, user_errors, exit_process: bool = Tru
             logger.info(f"removed {stale[0]} Fast DDS shared-memory segment(s) ({stale[1] / 2**20:.0f} MiB) "
                         "left in /dev/shm by killed processes")
         node = make_node()
+        if exit_process:
+            _freeze_start_up_heap()
         if spin is None:
             rclpy.spin(node)
         else:
