@@ -276,6 +276,18 @@ def test_a_model_whose_ids_cannot_ride_in_alpha_renders_in_two_passes():
         assert r.render(S.facing_pose(2.0)).part_ids.max() == 1
 
 
+def test_a_renderer_whose_colour_read_has_no_alpha_renders_in_two_passes(monkeypatch):
+    """The one pass relies on reading the colour buffer with its alpha; where that read is not in place (another
+    pyrender), the renderer finds out on its first frame and draws the ids in their own pass."""
+    import uw_sil.sim.render as R
+
+    monkeypatch.setattr(R, "_read_rgba_colour", lambda offscreen: None)
+    with Renderer(_quad(), camera=SMALL) as r:
+        assert not r._one_pass
+        out = r.render(S.facing_pose(2.0))
+    assert out.rgb.shape == (SMALL.height, SMALL.width, 3) and set(np.unique(out.part_ids)) == {0, 1}
+
+
 def test_user_stl_and_labels(tmp_path):
     box = trimesh.creation.box(extents=(0.4, 0.3, 0.05))
     path = tmp_path / "user.stl"

@@ -340,7 +340,9 @@ class Renderer:
                     self._one_pass = False
                 else:
                     _read_rgba_colour(self._offscreen)
-            self._offscreen.render(self._scene, flags=self._flags_color)
+            warm = self._offscreen.render(self._scene, flags=self._flags_color)[0]
+            if self._one_pass and warm.shape[-1] != 4:      # a pyrender that reads colour otherwise: two passes
+                self._one_pass = False
             self._offscreen.render(self._scene, flags=self._flags_seg, seg_node_map=self._seg_map)
         self._camera = camera
         rn = camera.ray_norm()
