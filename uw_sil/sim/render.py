@@ -411,7 +411,7 @@ class Renderer:
         labels = self._label_lut[part_ids]
         if color is None:
             return RenderResult(rgb=None, depth=depth, range=rng, labels=labels, part_ids=part_ids)
-        rgb = color.astype(np.float32) * np.float32(1.0 / 255.0)
+        rgb = np.multiply(color, np.float32(1.0 / 255.0), dtype=np.float32)     # one pass: cast and scale
         # water pixels are 0: their shading factor set to 0 (the albedo is finite and >= 0, so the product is the
         # +0.0 an assignment would write), or the pixels zeroed where nothing is shaded
         miss = ~hit
