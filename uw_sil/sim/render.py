@@ -336,12 +336,11 @@ class Renderer:
                 self._offscreen = None
             self._offscreen = pyrender.OffscreenRenderer(int(camera.width), int(camera.height))
             if self._one_pass:
-                if self._offscreen._platform.supports_framebuffers():     # not OSMesa after all: two passes
-                    self._one_pass = False
-                else:
-                    _read_rgba_colour(self._offscreen)
+                _read_rgba_colour(self._offscreen)
             warm = self._offscreen.render(self._scene, flags=self._flags_color)[0]
-            if self._one_pass and warm.shape[-1] != 4:      # a pyrender that reads colour otherwise: two passes
+            if self._one_pass and warm.shape[-1] != 4:
+                # the colour was not read through the default framebuffer with its alpha (a platform with
+                # framebuffer objects, which multisamples it, or another pyrender): two passes
                 self._one_pass = False
             self._offscreen.render(self._scene, flags=self._flags_seg, seg_node_map=self._seg_map)
         self._camera = camera
