@@ -511,6 +511,7 @@ def test_a_nested_model_never_ends_below_the_model_it_contains(bags, monkeypatch
     """Plant an optimizer that returns a bad point (the effect at the far end of its box): the refit must
     keep the current model's optimum (effect neutral), so its θ on the fit frames is not below the base
     model's; without the invariant the candidate's θ on the fit frames falls well below it."""
+    import uw_sil.fit.diagnose as dg
     import uw_sil.fit.judges.base as jb
     from uw_sil.fit.diagfit import ModelFit
     from uw_sil.fit.diagnose import diagnose_bag
@@ -525,6 +526,9 @@ def test_a_nested_model_never_ends_below_the_model_it_contains(bags, monkeypatch
         return ModelFit(model, x, fit.theta_train, fit.theta_start, fit.n_evals, 1, "planted", 0.0, 0)
 
     monkeypatch.setattr(jb, "fit_model", bad_fit)
+    # the rounds' cheap refits run no optimizer of their own (ROUND_ITER 0): give them one iteration, as the
+    # winner's full-budget refit has
+    monkeypatch.setattr(dg, "ROUND_ITER", 1)
     # (in this process: the planted optimizer is not in worker processes)
     doc = diagnose_bag(bags["control"], k=6, effects_allowed=["vignetting"], processes=1).to_json()
     cand = next(c for c in doc["candidates"] if c["effect"] == "vignetting")
@@ -535,6 +539,43 @@ def test_a_nested_model_never_ends_below_the_model_it_contains(bags, monkeypatch
     assert cand["theta_train"] >= base_fit_theta - 1e-9
     assert cand["fit"]["theta_fit_optimizer"] < base_fit_theta - 0.01      # the planted point was worse
     assert doc["verdict"] == []
+
+
+def test_a_rounds_cheap_refit_runs_no_optimizer_and_keeps_its_best_start(bags, monkeypatch):
+    """A round's cheap refit (a budget of no CMA-ES iterations, :data:`uw_sil.fit.diagnose.ROUND_ITER`) is the
+    best of its starts by θ on the fit frames: no optimizer runs, and a start that blackens the corners loses to
+    the neutral one whichever comes first. With one iteration the optimizer runs."""
+    from dataclasses import replace
+
+    import uw_sil.fit.judges.base as jb
+    from uw_sil.fit.diagfit import EffectModel, FrameObjective, noise_sigmas
+    from uw_sil.fit.judges import JUDGES
+    from uw_sil.fit.residuals import load_frames, reduce_frame, split_frames
+
+    frames = load_frames(bags["control"], k=4)
+    fit_f, sel_f = split_frames(frames)
+    rfit = [reduce_frame(f, 2) for f in fit_f]
+    model = EffectModel(rfit, ("vignetting",))
+    lo, _ = model.bounds()
+    x_id = model.x0(np.array([0.3, 0.1, 0.08, 0.05, 0.3, 0.4, 0.02]))
+    x_bad = x_id.copy()
+    x_bad[7:] = lo[7:]                          # k1 = -1.2, k2 = -0.6: corners black
+    with FrameObjective(rfit, model, noise_sigmas(rfit), seed=0) as ob:
+        th = ob(np.stack([x_bad, x_id]))
+    assert th[1] > th[0] + 0.01
+
+    def no_optimizer(*a, **kw):
+        raise AssertionError("the optimizer ran")
+
+    monkeypatch.setattr(jb, "fit_model", no_optimizer)
+    job = jb.Job(fit_f=fit_f, sel_f=sel_f, R_hi={}, R_lo={}, R_ls={}, fog="exp2", seed=0, max_iter=0, popsize=4,
+                 patience=2, sigs={}, prox={}, judges=JUDGES)
+    for cand in ([x_bad, x_id], [x_id, x_bad]):
+        fit = jb._cmaes_from_best(job, [JUDGES["vignetting"]], rfit, model, cand)
+        assert np.array_equal(fit.x, x_id) and fit.n_evals == 2 and fit.n_iters == 0
+        assert fit.theta_train == pytest.approx(float(th[1]), abs=1e-12)
+    with pytest.raises(AssertionError, match="the optimizer ran"):
+        jb._cmaes_from_best(replace(job, max_iter=1), [JUDGES["vignetting"]], rfit, model, [x_bad, x_id])
 
 
 def plant_first_choice(monkeypatch):

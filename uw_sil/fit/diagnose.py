@@ -326,9 +326,16 @@ LATER_CANDIDATES = 3
 #: Least-squares iterations of the current model's fit, the reference of the held-out residual criterion
 #: (the candidates' least-squares fits start from it with their effect neutral, and from their own starts).
 LS_BASE_NFEV = 30
-#: CMA-ES iterations of the candidates' first, cheap refit in each round (after their least-squares start);
-#: the round's winner is then refitted with the base fit's full budget from that point.
-CHEAP_ITER = 6
+#: CMA-ES iterations of the candidates' first, cheap refit in each round (and of the current model's own refit,
+#: the reference they are compared with): none. The cheap refit is the candidate's least-squares fits (about 80 px
+#: wide, from the plug-in's starts and the nested ones), and θ on the fit frames picks the best of those and of the
+#: nested starts; the round's winner is then refitted with the base fit's full budget from that point. Six
+#: iterations until 2026-11-30: on the nine physical dives of seeds 401-409 one and none gave the same verdicts as
+#: six (bench/README.md, "The rounds' cheap refits without CMA-ES").
+ROUND_ITER = 0
+#: CMA-ES iterations of backward elimination's refits (the model without one effect: its θ refit has no
+#: least-squares fit of its own) and of each effect's step of the final polish (6 until 2026-11-30).
+CHEAP_ITER = 1
 
 
 def _confidence(strength: float, doubts: list) -> float:
@@ -840,7 +847,7 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
             if not cands:
                 break
             t0 = time.perf_counter()
-            cheap = replace(job, max_iter=min(job.max_iter, CHEAP_ITER))
+            cheap = replace(job, max_iter=min(job.max_iter, ROUND_ITER))
             results = _refit_all(workers, cands, cheap, current, say, f"round {rnd}", took, parents)
             current, reference = _adopt_reference(current, results.pop(REFERENCE, None), say, f"round {rnd}")
             if rnd == 1 and reference and reference["adopted"]:

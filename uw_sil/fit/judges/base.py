@@ -41,7 +41,8 @@ from typing import Callable, Optional
 import numpy as np
 
 from ...sim.params import RGB_NAMES
-from ..diagfit import BASE_SIGMA0, EffectModel, FrameObjective, fit_model, ls_fit, noise_sigmas, residual_energy
+from ..diagfit import (BASE_SIGMA0, EffectModel, FrameObjective, ModelFit, fit_model, ls_fit, noise_sigmas,
+                       residual_energy)
 
 __all__ = ["Job", "Current", "Refit", "Judge", "theta_refit", "margin_for", "bootstrap_se", "z_multiple",
            "MIN_MARGIN", "MIN_RESIDUAL_MARGIN", "residual_gain", "residual_improvement", "current_ls"]
@@ -462,10 +463,15 @@ def _joint_model(job: Job, names: tuple, values: dict) -> tuple:
 
 
 def _cmaes_from_best(job: Job, js: list, rfit: list, model: EffectModel, cand: list):
-    """CMA-ES with the job's budget on the fit frames from the start in ``cand`` that scores highest by θ."""
+    """CMA-ES with the job's budget on the fit frames from the start in ``cand`` that scores highest by θ;
+    with a budget of no iterations (``job.max_iter <= 0``: a round's cheap refits) that start itself."""
     noise = noise_sigmas(rfit)
     with FrameObjective(rfit, model, noise, seed=job.seed) as of:
         th = of(np.stack(cand))
+    if job.max_iter <= 0:
+        i = int(np.nanargmax(th))
+        return ModelFit(model, np.asarray(cand[i], float), float(th[i]), float(th[i]), len(cand), 0, "starts", 0.0,
+                        job.seed)
     return fit_model(model, rfit, noise, cand[int(np.nanargmax(th))], sigma0=_sigma0(js), seed=job.seed,
                      max_iter=job.max_iter, popsize=job.popsize, patience=job.patience, interrupt=job.interrupt)
 
