@@ -17,8 +17,9 @@ camera info and panel poses, and the scene model; never a ground-truth sidecar):
    starts, they decide nothing. Residual maps over every frame (:func:`uw_sil.fit.residuals.locate`) say
    where the mismatch is, for the reader.
 4. **greedy forward selection on held-out frames**: in the first round *every* effect with a plug-in
-   (:mod:`uw_sil.fit.judges`) is refitted jointly with the current model, with the same optimizer budget as
-   the base fit, and so is the current model itself (:func:`uw_sil.fit.judges.base.reference_refit`: where that
+   (:mod:`uw_sil.fit.judges`) is refitted jointly with the current model, cheaply (least squares at about 80 px
+   from the plug-in's starts and the nested ones, the best of them by θ: :data:`ROUND_ITER`), and so is the
+   current model itself with the same budget (:func:`uw_sil.fit.judges.base.reference_refit`: where that
    scores higher on the fit frames it is what the round's candidates are compared with, since their refits go on
    optimizing its parameters too; a fit holding its effect neutral is never accepted); the effect that raises
    held-out θ most beyond its noise margin joins the model (the margin:
@@ -737,7 +738,8 @@ def diagnose_frames(frames: list, fog: str = "exp2", seed: int = 0, max_effects:
     ``report_frames``: frames of ``frames`` set aside (:func:`uw_sil.fit.residuals.set_aside`), only scored
     with the base and the final model (``theta_report``);
     ``max_effects``: effects in the final model at most (greedy forward selection stops there);
-    ``max_iter``/``popsize``: the CMA-ES budget of every fit (base and candidates alike);
+    ``max_iter``/``popsize``: the CMA-ES budget of the base fit and of each round's winner's full refit (a round's
+    cheap refits take :data:`ROUND_ITER` iterations, the elimination's and the polish's :data:`CHEAP_ITER`);
     ``effects_allowed``: names of the effects considered (default all with a plug-in);
     ``processes``: worker processes refitting a round's candidates side by side (default: the thread budget,
     :func:`uw_sil._shared.process.default_threads`; 1 = all in this process). The document is the same:
