@@ -468,12 +468,12 @@ def _cmaes_from_best(job: Job, js: list, rfit: list, model: EffectModel, cand: l
     noise = noise_sigmas(rfit)
     with FrameObjective(rfit, model, noise, seed=job.seed) as of:
         th = of(np.stack(cand))
+    i = int(np.nanargmax(th))
     if job.max_iter <= 0:
-        i = int(np.nanargmax(th))
         return ModelFit(model, np.asarray(cand[i], float), float(th[i]), float(th[i]), len(cand), 0, "starts", 0.0,
                         job.seed)
-    return fit_model(model, rfit, noise, cand[int(np.nanargmax(th))], sigma0=_sigma0(js), seed=job.seed,
-                     max_iter=job.max_iter, popsize=job.popsize, patience=job.patience, interrupt=job.interrupt)
+    return fit_model(model, rfit, noise, cand[i], sigma0=_sigma0(js), seed=job.seed, max_iter=job.max_iter,
+                     popsize=job.popsize, patience=job.patience, interrupt=job.interrupt)
 
 
 def theta_refit(job: Job, current: Current, judge: Judge, starts: Optional[list] = None,
