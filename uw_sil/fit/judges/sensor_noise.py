@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import nullcontext
 from typing import Optional
 
 import numpy as np
@@ -82,21 +83,21 @@ def noise_refit(fit_f, held_f, base_x, sig, fog, seed, ref_held_pf, base_theta_t
 
     fixed = {e: () for e in effects}
 
-    def prep(frames):
+    def prep(frames, mdl):
         """per frame: noise-free simulation S (the current model: base and its deterministic effects), the
         recording's statistics, and the pixels every statistic of that frame uses (NoisePixels of the model's
-        pixels, leaving out the recording's particles in real and simulated)."""
-        rfs = [reduce_frame(f, 1) for f in frames]
-        cur = EffectModel(rfs, effects, values=values, free=fixed, fog=fog, seed=seed) if effects else None
+        pixels, leaving out the recording's particles in real and simulated). With effects, S is ``mdl`` (the
+        candidate model of these frames) without noise: its simulations of the frame keep that part and add
+        only their noise to it (:class:`uw_sil.sim.model.PreparedModel`)."""
         S, real, hits = [], [], []
         for k, f in enumerate(frames):
             rr = f.render
-            if cur is None:
+            if not effects:
                 p = np.clip(base_x, 0, None)
                 p[3:6] = np.clip(p[3:6], 0, 1)
                 S.append(degrade(rr.rgb, rr.range, rr.depth, p, fog=fog) * 255.0)
             else:
-                S.append(cur.simulate(k, cur.x0(base_x)[None])[0].astype(np.float64) * 255.0)
+                S.append(mdl.simulate(k, mdl.x0(base_x)[None])[0].astype(np.float64) * 255.0)
             hit = np.isfinite(rr.range)
             Y, Ys = luminance(f.image.astype(np.float32)), luminance(S[-1])
             excl = particle_exclusion(Y, Ys, hit)
@@ -106,7 +107,7 @@ def noise_refit(fit_f, held_f, base_x, sig, fog, seed, ref_held_pf, base_theta_t
             pix = NoisePixels(Ys, hit, excl)
             hits.append(pix)
             real.append(pix.statistics(Y))
-        return rfs, S, real, hits
+        return S, real, hits
 
     def recorded(img255):
         """a simulation (grey levels) as the camera records it: clipped to 0-255 and rounded, in place"""
@@ -123,10 +124,11 @@ def noise_refit(fit_f, held_f, base_x, sig, fog, seed, ref_held_pf, base_theta_t
         ok = np.isfinite(va) & np.isfinite(vb)
         return float(np.abs(va[ok] - vb[ok]).sum())
 
-    rfit, Sfit, real_fit, hfit = prep(fit_f)
-    rheld, Sheld, real_held, hheld = prep(held_f)
     names = tuple(effects) + ("sensor_noise",)
-    model = EffectModel(rfit, names, values=values, free=fixed, fog=fog, seed=seed)
+    model = EffectModel([reduce_frame(f, 1) for f in fit_f], names, values=values, free=fixed, fog=fog, seed=seed)
+    hmodel = model.like([reduce_frame(f, 1) for f in held_f], seed=seed + 50)
+    Sfit, real_fit, hfit = prep(fit_f, model)
+    Sheld, real_held, hheld = prep(held_f, hmodel)
     lo, hi = model.bounds()
     h = (sig.hint if sig is not None else {}) or {}
     iw = np.nanmedian([r["i_water"] for r in real_fit if r]) if any(real_fit) else 60.0
@@ -143,8 +145,11 @@ def noise_refit(fit_f, held_f, base_x, sig, fog, seed, ref_held_pf, base_theta_t
     def total(X):
         """minus the distance summed over the fit frames, per candidate vector (rows of X). The frames in
         parallel (full-resolution simulations and statistics), summed in frame order: the same value with any
-        number of threads"""
-        per_frame = list(pool.map(lambda k: frame_dist(k, X), range(len(rfit))))
+        number of threads (with one, in this thread: its simulations then keep the noise-free part ``prep`` made,
+        as each thread has its own prepared models)"""
+        frames = range(len(model.rframes))
+        per_frame = [frame_dist(k, X) for k in frames] if pool is None else list(pool.map(lambda k: frame_dist(k, X),
+                                                                                          frames))
         return -np.sum(per_frame, axis=0)
 
     def fit(free_idx, x_start, sigma0):
@@ -167,7 +172,9 @@ def noise_refit(fit_f, held_f, base_x, sig, fog, seed, ref_held_pf, base_theta_t
         d = np.array([dist(real_fit[k], stats_of(recorded(imgs[j]), hfit[k])) for j in range(len(X))])
         return np.where(np.isnan(d), 0.0, d)
 
-    with ThreadPoolExecutor(default_threads(), thread_name_prefix="uw_sil-noise") as pool, remembered_white_noise():
+    threads = default_threads()
+    with (ThreadPoolExecutor(threads, thread_name_prefix="uw_sil-noise") if threads > 1 else nullcontext()) as pool, \
+            remembered_white_noise():
         # photon transfer from a two-point estimate, steps of 15 % of the box (the structured fit below refines
         # shot and read noise with every other parameter, steps of 5 %; a refinement of these two alone first
         # changed no verdict on six physical dives and cost a third of the refit)
@@ -225,7 +232,6 @@ def noise_refit(fit_f, held_f, base_x, sig, fog, seed, ref_held_pf, base_theta_t
                 tw.append(tc[-1] if twin is x else float(ref.score(white)[0]))
         return ew, ec, np.array(tb), np.array(tc), np.array(tw)
 
-    hmodel = model.like(rheld, seed=seed + 50)
     e_white, e_cand, tb, tc, tw = compare(held_f, Sheld, real_held, hheld, hmodel)
     _, _, tbf, tcf, _ = compare(fit_f, Sfit, real_fit, hfit, model, statistics=False)   # θ only: theta_train
     e_white, e_cand = np.array(e_white), np.array(e_cand)
