@@ -520,12 +520,13 @@ def test_remembered_white_noise_is_the_draw_and_leaves_the_generator_where_the_d
     every candidate): the remembered field must be the draw itself, the generator must end where drawing would
     have left it, and a different state must draw anew; outside a fit nothing is kept."""
     import uw_sil.sim.effects.sensor_noise as sn
+    from uw_sil.sim.effects.base import remembered_draws
 
     shape = (3, 40, 50)
     fresh = np.random.default_rng(7)
     want = fresh.standard_normal(shape, dtype=np.float32)
     want_next = fresh.random()
-    with sn.remembered_white_noise():
+    with remembered_draws():
         for _ in range(2):                                # the second time from the memory
             g = np.random.default_rng(7)
             np.testing.assert_array_equal(sn.white_normal(g, shape), want)
@@ -543,6 +544,39 @@ def test_remembered_white_noise_is_the_draw_and_leaves_the_generator_where_the_d
     g = np.random.default_rng(7)
     np.testing.assert_array_equal(sn.white_normal(g, shape), want)
     assert g.random() == want_next and not sn._white      # a live camera's frames are not kept
+
+
+def test_remembered_particles_are_the_draws(frames, renderer, monkeypatch):
+    """Within a fit (``remembered_draws``) the particles' places and the light on them are remembered by generator
+    state, density and scene: snow of other sizes and brightness from the same seed must be the image drawn
+    afresh, under the lamps and without; another scene's depth is lit anew, and nothing is kept after the fit."""
+    import uw_sil.sim.effects.marine_snow as ms
+    from uw_sil.sim.effects.base import remembered_draws
+    from uw_sil.sim.model import Geometry
+
+    cam = renderer.camera
+    specs = [{"marine_snow": {"density": 400.0, "brightness": b, "size": z}} for b, z in ((1.0, 3.0), (0.5, 1.0),
+                                                                                        (2.0, 6.0))]
+    specs += [{**s, "artificial_light": {"fill": 0.3, "offset_x": 0.4}} for s in specs[:2]]
+    geoms = {f: Geometry.from_render(frames[f][1], cam, frames[f][0]) for f in ("near", "far")}
+
+    def snow(i, f, seed=4):
+        return UnderwaterModel(P, specs[i]).degrade(geoms[f], cam, rng=np.random.default_rng(seed), pose=frames[f][0])
+
+    want = {(i, f): snow(i, f) for i in range(len(specs)) for f in geoms}
+    lit = []
+    real_lit = ms._lit
+    monkeypatch.setattr(ms, "_lit", lambda *a: lit.append(1) or real_lit(*a))
+    with remembered_draws():
+        for _ in range(2):
+            for (i, f), w in want.items():
+                np.testing.assert_array_equal(snow(i, f), w)
+        assert not np.array_equal(snow(0, "near", seed=5), want[0, "near"])     # another seed: other particles
+        assert len(ms._placed) > 0
+    # lit once per scene and light (two frames, with and without lamps) and for the other seed: not per candidate
+    assert len(lit) == 5, len(lit)
+    assert len(ms._placed) == 0
+    assert (want[0, "near"] > want[1, "near"]).any()                    # the sizes and brightness did change them
 
 
 def test_camera_response_is_a_function_of_intensity(frames, renderer):

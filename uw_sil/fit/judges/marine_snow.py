@@ -32,6 +32,7 @@ def snow_refit(R_hi, fit_f, held_f, base_x, fog, seed, effects: tuple = (), valu
     Fitted on the count alone in that model, its 1,500 particles per m³ of 2 mm claimed 96 % of the pixels (a
     veil, rejected; the recording's specks are 1.6-2.1 px); with their size and the haze between them: 40 per m³
     of 5 mm, 37 % of the pixels, as simulated 0.77."""
+    from ...sim.effects.base import remembered_draws
     from ...sim.noise import NoiseField
     from ..signatures import luminance, speck_sizes
 
@@ -68,7 +69,8 @@ def snow_refit(R_hi, fit_f, held_f, base_x, fog, seed, effects: tuple = (), valu
     grid = [(d, b, z) for d in (0.0, 15.0, 40.0, 100.0, 250.0, 600.0, 1500.0, 3000.0) for b in (0.3, 0.75, 1.5, 3.0)
             for z in (0.5, 1.0, 2.0, 5.0)]
     xs = [model.x0(base_x, {"marine_snow": {"density": d, "brightness": b, "size": z}}) for d, b, z in grid]
-    real, sim = frames_stats(rfit, xs, model, x_base, noise_fit)
+    with remembered_draws():        # the grid's candidates of one density share their particles' places and light
+        real, sim = frames_stats(rfit, xs, model, x_base, noise_fit)
     e_count = np.abs(np.log1p(sim[..., 0]) - np.log1p(real[:, None, 0]))
     e_area = np.abs(np.log(sim[..., 1]) - np.log(real[:, None, 1]))
     # the haze between the specks, in units of the frame's camera noise (luminance)

@@ -75,7 +75,7 @@ def noise_refit(fit_f, held_f, base_x, sig, fog, seed, ref_held_pf, base_theta_t
     measured on the held-out frames at full resolution for the base model (constant Gaussian noise estimated
     on the water, as the backward fit adds) and the candidate; the candidate's θ is reported as the base
     reference plus that difference."""
-    from ...sim.effects.sensor_noise import remembered_white_noise
+    from ...sim.effects.base import remembered_draws
     from ...sim.noise import NoiseField, water_noise_sigma
     from ...sim.optics import degrade
     from ..optimize import optimize
@@ -174,7 +174,7 @@ def noise_refit(fit_f, held_f, base_x, sig, fog, seed, ref_held_pf, base_theta_t
 
     threads = default_threads()
     with (ThreadPoolExecutor(threads, thread_name_prefix="uw_sil-noise") if threads > 1 else nullcontext()) as pool, \
-            remembered_white_noise():
+            remembered_draws():
         # photon transfer from a two-point estimate, steps of 15 % of the box (the structured fit below refines
         # shot and read noise with every other parameter, steps of 5 %; a refinement of these two alone first
         # changed no verdict on six physical dives and cost a third of the refit)

@@ -252,6 +252,8 @@ class LampRig:
         # what the shape of the light depends on (power, fill, veil and tint only scale it)
         self.key = (float(ox), float(oy), float(toe), float(tilt), float(values["half_angle"]), float(values["shape"]),
                     float(wb))
+        # what the light on a point (:meth:`irradiance`) depends on
+        self.light_key = self.key + (self.power, self.fill, self.tint.tobytes())
 
     def beam(self, cos_theta):
         theta = np.arccos(np.clip(cos_theta, -1.0, 1.0))

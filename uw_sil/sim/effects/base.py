@@ -18,14 +18,16 @@ the order of :attr:`Effect.params` (:meth:`Effect.vector`, :meth:`Effect.from_ve
 """
 from __future__ import annotations
 
+import contextlib
 import math
+import threading
 import zlib
 from dataclasses import dataclass
-from typing import Optional
+from typing import Callable, Optional
 
 import numpy as np
 
-__all__ = ["EffectParam", "Effect", "ModelTerms", "STAGES", "effect_rng"]
+__all__ = ["EffectParam", "Effect", "ModelTerms", "STAGES", "effect_rng", "RememberedDraws", "remembered_draws"]
 
 #: Stages in composition order.
 STAGES = ("geometry", "radiance", "medium", "direct", "sensor")
@@ -137,6 +139,92 @@ def effect_rng(seed: int, name: str) -> np.random.Generator:
     """The generator of one effect for one frame: independent streams per effect, so adding one random
     effect to a model does not change another's draws (common random numbers across candidates)."""
     return np.random.default_rng([int(seed) & 0xFFFFFFFFFFFFFFFF, zlib.crc32(name.encode())])
+
+
+_remembering = 0
+_remembering_lock = threading.Lock()
+
+
+@contextlib.contextmanager
+def remembered_draws():
+    """Within it, every :class:`RememberedDraws` remembers what effects draw, by generator state: a fit that
+    simulates every candidate of a frame from the same seed (common random numbers, :func:`effect_rng`) gets
+    the draws of the first one back. Outside, a live camera's new seed per frame would only fill memory. All is
+    forgotten at the end."""
+    global _remembering
+    with _remembering_lock:
+        _remembering += 1
+    try:
+        yield
+    finally:
+        with _remembering_lock:
+            _remembering -= 1
+            if not _remembering:
+                for memo in RememberedDraws.instances:
+                    memo.forget()
+
+
+class RememberedDraws:
+    """What one effect draws (and what it derives from the draws alone), remembered within
+    :func:`remembered_draws` under the generator's state and a key, up to ``max_bytes`` (the oldest go first).
+
+    :meth:`draw` returns what ``make(rng)`` returns and leaves the generator where ``make`` leaves it, whether
+    the value comes from ``make`` or from memory; :meth:`value` remembers what does not draw (``make()``) under
+    a key alone. Values must not be written to (they are handed out again)."""
+
+    instances: list = []
+
+    def __init__(self, max_bytes: int):
+        self.max_bytes = int(max_bytes)
+        self._memo: dict = {}
+        self._lock = threading.Lock()          # fits simulate frames on threads
+        RememberedDraws.instances.append(self)
+
+    def __len__(self) -> int:
+        return len(self._memo)
+
+    def forget(self) -> None:
+        with self._lock:
+            self._memo.clear()
+
+    @staticmethod
+    def state_key(rng: np.random.Generator):
+        """The generator's state as a key; None outside :func:`remembered_draws`."""
+        if not _remembering:
+            return None
+        bg = rng.bit_generator
+        return type(bg).__name__, repr(bg.state)
+
+    def draw(self, rng: np.random.Generator, key, make: Callable):
+        """``make(rng)`` -> ``(value, nbytes)``: its value, remembered under the generator's state and ``key``."""
+        state = self.state_key(rng)
+        if state is None:
+            return make(rng)[0]
+        hit = self._memo.get((state, key))
+        if hit is not None:
+            rng.bit_generator.state = hit[1]
+            return hit[0]
+        value, nbytes = make(rng)
+        self._keep((state, key), (value, rng.bit_generator.state), nbytes)
+        return value
+
+    def value(self, key, make: Callable):
+        """``make()`` -> ``(value, nbytes)``: its value, remembered under ``key`` (None: not remembered)."""
+        if key is None or not _remembering:
+            return make()[0]
+        hit = self._memo.get(key)
+        if hit is not None:
+            return hit[0]
+        value, nbytes = make()
+        self._keep(key, (value,), nbytes)
+        return value
+
+    def _keep(self, key, entry, nbytes: int) -> None:
+        with self._lock:
+            while self._memo and sum(e[-1] for e in self._memo.values()) + nbytes > self.max_bytes:
+                del self._memo[next(iter(self._memo))]
+            if nbytes <= self.max_bytes:
+                self._memo[key] = entry + (nbytes,)
 
 
 class Effect:

@@ -20,7 +20,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from .base import Effect, EffectParam
+from .base import Effect, EffectParam, RememberedDraws
 
 Z_MIN, Z_MAX = 0.15, 4.0
 MAX_PARTICLES = 200_000
@@ -34,6 +34,42 @@ def default_lit(X: np.ndarray, a: np.ndarray) -> np.ndarray:
     theta = np.arccos(np.clip(z / np.maximum(r, 1e-6), -1, 1))
     beam = np.exp(-np.log(2.0) * (theta / 0.7) ** 2)
     return (np.minimum(1.0 / (r * r), 25.0) * beam)[:, None] * np.exp(-np.outer(r, a))
+
+
+#: Particle draws and their light within :func:`uw_sil.sim.effects.base.remembered_draws` (up to 64 MB).
+_placed = RememberedDraws(64 * 2 ** 20)
+
+
+def _draw(rng, lam: float, h: int, w: int):
+    """The particles' number (Poisson, mean ``lam``), image positions, depths and log-normal size factors:
+    ``((u, v, z, size_factor), nbytes)``."""
+    n = int(min(rng.poisson(lam), MAX_PARTICLES))
+    if n == 0:
+        e = np.zeros(0)
+        return (e, e, e, e), 0
+    u = rng.uniform(-0.5, w - 0.5, n)
+    v = rng.uniform(-0.5, h - 0.5, n)
+    z = np.cbrt(Z_MIN ** 3 + rng.uniform(0, 1, n) * (Z_MAX ** 3 - Z_MIN ** 3))
+    logn = rng.lognormal(0.0, 0.5, n)
+    return (u, v, z, logn), 4 * 8 * n
+
+
+def _lit(terms, depth, a, u, v, z, K):
+    """Which particles are in front of the scene, the irradiance on them (the lamps', else a camera lamp's) and
+    their light's attenuation on the way to the camera: ``((visible, lit, attenuation, depth), nbytes)``, or
+    ``(None, 0)`` where none is in front (``depth`` is kept so that its ``id`` in a key stays its own)."""
+    fx, fy, cx, cy = K
+    h, w = depth.shape
+    iu = np.clip(np.rint(u).astype(np.int64), 0, w - 1)
+    iv = np.clip(np.rint(v).astype(np.int64), 0, h - 1)
+    vis = z < depth[iv, iu]                                  # depth is inf on water
+    if not vis.any():
+        return None, 0
+    u, v, z = u[vis], v[vis], z[vis]
+    X = np.stack([(u - cx) / fx * z, (v - cy) / fy * z, z], axis=1)
+    lit = terms.lamps.irradiance(X, a) if terms.lamps is not None else default_lit(X, a)
+    att = np.exp(-np.outer(z, a))
+    return (vis, lit, att, depth), vis.nbytes + lit.nbytes + att.nbytes
 
 
 class MarineSnow(Effect):
@@ -70,23 +106,24 @@ class MarineSnow(Effect):
         h, w = terms.shape
         fx, fy, cx, cy = float(cam.fx), float(cam.fy), float(cam.cx), float(cam.cy)
         volume = (Z_MAX ** 3 - Z_MIN ** 3) / 3.0 * (w / fx) * (h / fy)
-        n = int(min(rng.poisson(values["density"] * volume), MAX_PARTICLES))
-        if n == 0:
+        lam = values["density"] * volume
+        # where the particles are, and the light on them, depend on the density, the seed and the scene, not on
+        # the particles' size or brightness: a fit of those (the diagnosis's grid) gets them from memory
+        state = _placed.state_key(rng)
+        u, v, z, logn = _placed.draw(rng, (lam, h, w), lambda g: _draw(g, lam, h, w))
+        if u.size == 0:
             return None
-        u = rng.uniform(-0.5, w - 0.5, n)
-        v = rng.uniform(-0.5, h - 0.5, n)
-        z = np.cbrt(Z_MIN ** 3 + rng.uniform(0, 1, n) * (Z_MAX ** 3 - Z_MIN ** 3))
-        diam = values["size"] * 1e-3 * rng.lognormal(0.0, 0.5, n)
-        iu = np.clip(np.rint(u).astype(np.int64), 0, w - 1)
-        iv = np.clip(np.rint(v).astype(np.int64), 0, h - 1)
-        vis = z < terms.geom.depth[iv, iu]                      # depth is inf on water
-        if not vis.any():
-            return None
-        u, v, z, diam = u[vis], v[vis], z[vis], diam[vis]
-        X = np.stack([(u - cx) / fx * z, (v - cy) / fy * z, z], axis=1)
+        depth = terms.geom.depth
         a = terms.a.astype(float)
-        lit = terms.lamps.irradiance(X, a) if terms.lamps is not None else default_lit(X, a)
-        amp = values["brightness"] * lit * np.exp(-np.outer(z, a))           # (M, 3) peak radiance
+        lamps = None if terms.lamps is None else terms.lamps.light_key
+        key = None if state is None else (state, lam, h, w, fx, fy, cx, cy, id(depth), a.tobytes(), lamps)
+        placed = _placed.value(key, lambda: _lit(terms, depth, a, u, v, z, (fx, fy, cx, cy)))
+        if placed is None:
+            return None
+        vis, lit, att = placed[:3]
+        u, v, z = u[vis], v[vis], z[vis]
+        diam = values["size"] * 1e-3 * logn[vis]
+        amp = values["brightness"] * lit * att                              # (M, 3) peak radiance
         d_px = fx * diam / z
         sigma = np.maximum(0.5, d_px / 2.8)
         energy = amp * (np.pi / 4.0 * d_px * d_px)[:, None]                  # radiance x area (px^2)

@@ -15,13 +15,10 @@ New temporal noise every frame, from the generator given. Not invertible.
 """
 from __future__ import annotations
 
-import contextlib
-import threading
-
 import cv2
 import numpy as np
 
-from .base import Effect, EffectParam
+from .base import Effect, EffectParam, RememberedDraws
 
 _FPN_SEED = 0x5EED_F1
 _patterns: dict = {}
@@ -43,52 +40,22 @@ def fixed_pattern(shape, kind: str = "pixel") -> np.ndarray:
     return p
 
 
-_white: dict = {}
-_white_lock = threading.Lock()              # the noise fit simulates frames on threads
-_WHITE_BYTES = 128 * 2 ** 20
-_remembering = 0
-
-
-@contextlib.contextmanager
-def remembered_white_noise():
-    """Within it, :func:`white_normal` remembers its fields by generator state (a fit that simulates every
-    candidate from the same seeds); outside, a new seed per frame would only fill memory. Forgotten at the end."""
-    global _remembering
-    with _white_lock:
-        _remembering += 1
-    try:
-        yield
-    finally:
-        with _white_lock:
-            _remembering -= 1
-            if not _remembering:
-                _white.clear()
+#: The white noise fields drawn within :func:`uw_sil.sim.effects.base.remembered_draws` (up to 128 MB).
+_white = RememberedDraws(128 * 2 ** 20)
 
 
 def white_normal(rng: np.random.Generator, shape) -> np.ndarray:
     """``rng.standard_normal(shape, dtype=float32)``, read-only, and ``rng`` left in the state that draw leaves.
 
-    Within :func:`remembered_white_noise` the field is remembered by the generator's state: a fit draws each
-    frame's noise from the same seed for every candidate it simulates (common random numbers), and the draw
-    (11 ms for a 640x480 frame) would cost more than the rest of the effect. Up to 128 MB of fields are kept."""
-    if not _remembering:
-        n = rng.standard_normal(shape, dtype=np.float32)
+    Within :func:`~uw_sil.sim.effects.base.remembered_draws` the field is remembered by the generator's state: a
+    fit draws each frame's noise from the same seed for every candidate it simulates (common random numbers), and
+    the draw (11 ms for a 640x480 frame) would cost more than the rest of the effect."""
+    def make(g):
+        n = g.standard_normal(shape, dtype=np.float32)
         n.flags.writeable = False
-        return n
-    bg = rng.bit_generator
-    key = (type(bg).__name__, repr(bg.state), tuple(shape))
-    hit = _white.get(key)
-    if hit is not None:
-        bg.state = hit[1]
-        return hit[0]
-    n = rng.standard_normal(shape, dtype=np.float32)
-    n.flags.writeable = False
-    with _white_lock:
-        while _white and sum(v[0].nbytes for v in _white.values()) + n.nbytes > _WHITE_BYTES:
-            del _white[next(iter(_white))]               # the oldest first
-        if n.nbytes <= _WHITE_BYTES:
-            _white[key] = (n, bg.state)
-    return n
+        return n, n.nbytes
+
+    return _white.draw(rng, tuple(shape), make)
 
 
 def correlated_normal(rng, shape, sigma_px: float) -> np.ndarray:
