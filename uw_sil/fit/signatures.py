@@ -547,16 +547,34 @@ def trimmed_sigma(d: np.ndarray, keep: float = 0.9) -> float:
     by sqrt(2) for a difference of two pixels.
 
     Single-precision differences (luminance) are selected in single precision: every float32 is a float64, so
-    the smallest ``keep`` share is the same set of values, and its mean square is taken in double precision.
-    (The partition of 250,000 differences took 2.0 ms against 7.2 ms converted to double first; the noise fit
-    measures hundreds of simulated frames, four partitions each.)"""
+    the smallest ``keep`` share is the same set of values, and its mean square is taken in double precision
+    (:func:`_smallest_squares`)."""
     a = np.asarray(d)
     a = np.abs(a if a.dtype == np.float32 else a.astype(np.float64)).ravel()
     if a.size == 0:
         return float("nan")
     n = max(1, int(keep * a.size))
-    a = np.partition(a, n - 1)[:n].astype(np.float64)
-    return float(np.sqrt(np.mean(a * a) / _truncated_second_moment(keep)) / math.sqrt(2))
+    return float(np.sqrt(_smallest_squares(a, n) / n / _truncated_second_moment(keep)) / math.sqrt(2))
+
+
+def _smallest_squares(a: np.ndarray, n: int) -> float:
+    """The sum of squares (double precision) of the ``n`` smallest values of ``a`` (1-D, not negative).
+
+    The noise fit takes this of hundreds of thousands of differences, three times per simulated frame: the whole
+    sum less the largest ``a.size - n``, found among the values above a threshold that a 1/64 sample puts below
+    them (about 15 % of the values), 2.1x faster than a partition of all (286,000 values: 1.2 ms against 2.6 ms).
+    The same sum to about 1e-14 relative (another order of summation); where the sample's threshold leaves fewer
+    values than the largest, a partition of all."""
+    m = a.size - n
+    if m > 0 and a.size >= 20_000:
+        j = int(a[::64].size * (1.0 - 1.5 * m / a.size))
+        big = a[a > np.partition(a[::64], j)[j]]
+        if big.size >= m:
+            top = np.partition(big, big.size - m)[big.size - m:].astype(np.float64)
+            a64 = a.astype(np.float64)
+            return float(np.dot(a64, a64) - np.dot(top, top))
+    s = np.partition(a, n - 1)[:n].astype(np.float64)
+    return float(np.dot(s, s))
 
 
 @lru_cache(maxsize=8)
