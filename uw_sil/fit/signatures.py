@@ -570,11 +570,16 @@ def _smallest_squares(a: np.ndarray, n: int) -> float:
         j = int(a[::64].size * (1.0 - 1.5 * m / a.size))
         big = a[a > np.partition(a[::64], j)[j]]
         if big.size >= m:
-            top = np.partition(big, big.size - m)[big.size - m:].astype(np.float64)
-            a64 = a.astype(np.float64)
-            return float(np.dot(a64, a64) - np.dot(top, top))
-    s = np.partition(a, n - 1)[:n].astype(np.float64)
-    return float(np.dot(s, s))
+            return _sum_of_squares(a) - _sum_of_squares(np.partition(big, big.size - m)[big.size - m:])
+    return _sum_of_squares(np.partition(a, n - 1)[:n])
+
+
+def _sum_of_squares(a: np.ndarray) -> float:
+    """The sum of squares of ``a`` in double precision, without BLAS: with a dot product (BLAS's threads) a trimmed
+    sigma of 286,000 differences took 6.3 ms against 2.2 ms on a 2-core machine with both cores busy."""
+    a = a.astype(np.float64)
+    a *= a
+    return float(a.sum())
 
 
 @lru_cache(maxsize=8)
