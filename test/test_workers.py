@@ -144,7 +144,9 @@ def test_a_diagnosis_is_the_same_with_one_process_or_two(tmp_path):
     refits one after the other, bit for bit (only the times differ). (Until the seafloor's texture pyramid was
     built under a lock, a two-process diagnosis of a seafloor dive could differ from the one-process one, up to
     the effect named first: uw_sil.sim.effects.unmodeled_geometry, whose race has a test of its own.) Two
-    effects judged on statistics are allowed, so that their judges run side by side too."""
+    effects judged on statistics are allowed, so that their judges run side by side too. The round's winner is
+    refitted with the full budget in the diagnosis's own process, its θ evaluations shared out among the workers
+    with two (:attr:`uw_sil.fit.judges.base.Job.pool`), on threads with one."""
     from uw_sil.bags.synth import synthesize_trial
     from uw_sil.fit.diagnose import diagnose_bag, without_times
     from uw_sil.sim.camera import CameraModel
@@ -162,6 +164,7 @@ def test_a_diagnosis_is_the_same_with_one_process_or_two(tmp_path):
     assert _largest_difference(one, two) == 0, _largest_difference(one, two, where=True)
     assert [s["chosen"] for s in one["selection"]] == [s["chosen"] for s in two["selection"]]
     assert any(c.get("round") == 1 for c in two["candidates"])
+    assert any(c.get("full_refit") for c in two["candidates"])
     assert {"sensor_noise", "compression"} <= {c["effect"] for c in two["candidates"]}
 
 

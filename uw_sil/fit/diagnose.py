@@ -819,7 +819,8 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
     timing["evidence_s"] = time.perf_counter() - t0
 
     job = Job(fit_f=list(fit_f), sel_f=list(held_f), R_hi=R_hi, R_lo=R_lo, R_ls=R_ls, fog=fog, seed=seed, max_iter=max_iter,
-              popsize=popsize, patience=PATIENCE, sigs=sigs, prox=prox, judges=JUDGES, interrupt=interrupt)
+              popsize=popsize, patience=PATIENCE, sigs=sigs, prox=prox, judges=JUDGES, interrupt=interrupt,
+              pool=workers)
     empty = EffectModel(rfit, (), fog=fog, seed=seed)
     current = Current(effects=(), values={}, base=np.asarray(base_fit.x[:7], float),
                       theta_fit=float(job.frame_theta(empty, fit_f, base_fit.x[None]).mean()),
@@ -923,6 +924,7 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
             before = float(current.sel_pf.mean())
             before_E = current.ls_sel_E
             judge = JUDGES[e]
+            t_adopt = time.perf_counter()
             keep = r_full is not None
             if judge.kind == "theta" and not judge.absorb and job.max_iter > cheap.max_iter and not keep:
                 say(f"round {rnd}: refitting {current.name} + {e} with the full budget")
@@ -946,6 +948,8 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
                 # the reference of the next round's residual evidence: the new model's least-squares fit polished
                 # with the base fit's least-squares budget (a candidate's fit must not win by a longer polish alone)
                 current = current_ls(job, with_effect(current, r), max_nfev=LS_BASE_NFEV)
+            # the winner's full-budget refit and the new model's least-squares fit (after the round's own time)
+            timing[f"round_{rnd}_adopt_s"] = time.perf_counter() - t_adopt
             how = "residual" if crit == "residual" else "θ"
             say(f"round {rnd}: accepted {e} by held-out {how} (held-out θ {before:.4f} -> "
                 f"{current.sel_pf.mean():.4f}, residual {np.mean(before_E):.3g} -> {np.mean(current.ls_sel_E):.3g} grey levels²)")

@@ -131,6 +131,10 @@ class Job:
         accepted geometry effect adds).
     interrupt : callable or None
         Called between optimizer iterations (raises to stop).
+    pool : WorkerPool or None
+        The diagnosis's worker processes, for the refits that run in its own process (the round's winner with
+        the full budget): their θ evaluations are shared out among them (:class:`~uw_sil.fit.diagfit.
+        FrameObjective`, the same values). A job sent to a worker goes without it.
     """
 
     fit_f: list
@@ -149,9 +153,10 @@ class Job:
     ls_nfev: int = 12
     exclude: dict = field(default_factory=dict)
     interrupt: Optional[Callable] = None
+    pool: Optional[object] = None
 
     # frames are keyed by id(): pickled (for a worker process) the dicts become lists in the order of
-    # fit_f + sel_f, and are keyed again by the unpickled frames; ``interrupt`` stays in this process
+    # fit_f + sel_f, and are keyed again by the unpickled frames; ``interrupt`` and ``pool`` stay in this process
     _BY_FRAME = ("R_hi", "R_lo", "R_ls", "exclude")
 
     def __getstate__(self):
@@ -160,6 +165,7 @@ class Job:
         for k in self._BY_FRAME:
             state[k] = [state[k].get(id(f)) for f in frames]
         state["interrupt"] = None
+        state["pool"] = None
         return state
 
     def __setstate__(self, state):
@@ -181,7 +187,7 @@ class Job:
         the objective every model is compared with (same noise realization for every model)."""
         rf = self.reduced(frames, "high")
         m = model.like(rf, seed=self.seed + seed_offset)
-        with FrameObjective(rf, m, noise_sigmas(rf), seed=self.seed) as ob:
+        with FrameObjective(rf, m, noise_sigmas(rf), seed=self.seed, pool=self.pool) as ob:
             return ob.per_frame(np.atleast_2d(x))
 
 
@@ -466,14 +472,14 @@ def _cmaes_from_best(job: Job, js: list, rfit: list, model: EffectModel, cand: l
     """CMA-ES with the job's budget on the fit frames from the start in ``cand`` that scores highest by θ;
     with a budget of no iterations (``job.max_iter <= 0``: a round's cheap refits) that start itself."""
     noise = noise_sigmas(rfit)
-    with FrameObjective(rfit, model, noise, seed=job.seed) as of:
+    with FrameObjective(rfit, model, noise, seed=job.seed, batch=job.popsize, pool=job.pool) as of:
         th = of(np.stack(cand))
-    i = int(np.nanargmax(th))
-    if job.max_iter <= 0:
-        return ModelFit(model, np.asarray(cand[i], float), float(th[i]), float(th[i]), len(cand), 0, "starts", 0.0,
-                        job.seed)
-    return fit_model(model, rfit, noise, cand[i], sigma0=_sigma0(js), seed=job.seed, max_iter=job.max_iter,
-                     popsize=job.popsize, patience=job.patience, interrupt=job.interrupt)
+        i = int(np.nanargmax(th))
+        if job.max_iter <= 0:
+            return ModelFit(model, np.asarray(cand[i], float), float(th[i]), float(th[i]), len(cand), 0, "starts",
+                            0.0, job.seed)
+        return fit_model(model, rfit, noise, cand[i], sigma0=_sigma0(js), seed=job.seed, max_iter=job.max_iter,
+                         popsize=job.popsize, patience=job.patience, interrupt=job.interrupt, objective=of)
 
 
 def theta_refit(job: Job, current: Current, judge: Judge, starts: Optional[list] = None,
