@@ -979,7 +979,7 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
         t0 = time.perf_counter()
         before = float(current.sel_pf.mean())
         say(f"polishing {current.name} one effect at a time on the fit frames")
-        current, polished = polish_blocks(job, current, max_iter=min(job.max_iter, CHEAP_ITER), pool=workers)
+        current, polished = polish_blocks(job, current, max_iter=min(job.max_iter, CHEAP_ITER))
         for st in polished:
             say(f"polish: {st['effect']} " + (f"θ on the fit frames {st['theta_fit_before']:.4f} -> "
                                               f"{st['theta_fit_after']:.4f}" if st["kept"] else "unchanged"))

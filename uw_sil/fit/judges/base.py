@@ -132,8 +132,8 @@ class Job:
     interrupt : callable or None
         Called between optimizer iterations (raises to stop).
     pool : WorkerPool or None
-        The diagnosis's worker processes, for the refits that run in its own process (the round's winner with
-        the full budget): their θ evaluations are shared out among them (:class:`~uw_sil.fit.diagfit.
+        The diagnosis's worker processes, for the fits that run in its own process (the round's winner with
+        the full budget, the final polish): their θ evaluations are shared out among them (:class:`~uw_sil.fit.diagfit.
         FrameObjective`, the same values). A job sent to a worker goes without it.
     """
 
@@ -640,7 +640,7 @@ def with_effect(current: Current, r: Refit) -> Current:
                    ls_params=r.extra.get("ls_params"), ls_sel_E=r.extra.get("ls_sel_E"))
 
 
-def polish_blocks(job: Job, current: Current, max_iter: int, pool=None) -> tuple:
+def polish_blocks(job: Job, current: Current, max_iter: int) -> tuple:
     """The selected model polished one effect at a time: CMA-ES on the free parameters of one effect with
     everything else held, effect after effect, on the fit frames (high resolution, θ as every model is compared),
     each step kept only if it raises θ there. Returns ``(current, steps)``: the polished model with its θ per
@@ -661,7 +661,7 @@ def polish_blocks(job: Job, current: Current, max_iter: int, pool=None) -> tuple
     x = np.asarray(current.x, float).copy()
     sigma = _sigma0([job.judges[e] for e in names])
     steps = []
-    with FrameObjective(rfit, model, noise, seed=job.seed, batch=job.popsize, pool=pool) as ob:
+    with FrameObjective(rfit, model, noise, seed=job.seed, batch=job.popsize, pool=job.pool) as ob:
         best = float(ob(x[None])[0])
         for e in names:
             fixed = np.ones(x.size, bool)
