@@ -62,15 +62,17 @@ def _trial(d: str) -> str:
 HERE = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
-def diagnose_fresh(bag: str, processes, out: str, code: str = HERE) -> tuple:
+def diagnose_fresh(bag: str, processes, out: str, code: str = HERE, seed=None) -> tuple:
     """(wall time, document) of a fresh ``uw-sil diagnose`` of the checkout ``code`` (``--processes``
-    omitted when ``processes`` is None: the command's default). It runs beside ``out``: ``python -m`` puts the
-    working directory first on the path, where another checkout would shadow ``code``."""
+    omitted when ``processes`` is None: the command's default; ``--seed`` when ``seed`` is not None). It runs
+    beside ``out``: ``python -m`` puts the working directory first on the path, where another checkout would
+    shadow ``code``."""
     import json
     import subprocess
 
     env = dict(os.environ, PYTHONPATH=os.path.abspath(code))
     more = [] if processes is None else ["--processes", str(processes)]
+    more += [] if seed is None else ["--seed", str(seed)]
     t0 = time.perf_counter()
     subprocess.run([sys.executable, "-m", "uw_sil.cli", "diagnose", "--bag", bag, "--json", out, *more],
                    check=True, stdout=subprocess.DEVNULL, env=env, cwd=os.path.dirname(out))
