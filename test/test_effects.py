@@ -193,6 +193,55 @@ def _block_scene(cam, z_wall=2.0, z_block=1.8, half=0.1):
     return geom, XT, YT, on_block
 
 
+def _floor_scene(cam, height=0.5, block=False):
+    """A seafloor ``height`` below the camera (y down), seen level (no render: exact geometry; labels 2), with
+    ``block``: a box 0.2 m wide and 0.25 m high standing on it 1.5 m ahead, its face towards the camera."""
+    from uw_sil.sim.model import Geometry
+
+    h, w = cam.height, cam.width
+    XT, YT = np.meshgrid((np.arange(w) - cam.cx) / cam.fx, (np.arange(h) - cam.cy) / cam.fy)
+    with np.errstate(divide="ignore"):
+        depth = np.where(YT > 0.01, height / np.maximum(YT, 1e-9), np.inf)
+    labels = np.where(np.isfinite(depth), 2, 0)
+    parts = np.where(np.isfinite(depth), 0xFFFF, 0)
+    if block:
+        zb = 1.5
+        face = (np.abs(XT * zb) <= 0.1) & (YT * zb >= height - 0.25) & (YT * zb <= height) & (zb < depth)
+        depth, labels, parts = np.where(face, zb, depth), np.where(face, 1, labels), np.where(face, 1, parts)
+    depth = depth.astype(np.float32)
+    rng = (depth * np.sqrt(1 + XT ** 2 + YT ** 2)).astype(np.float32)
+    return Geometry(cam, np.full((h, w, 3), 0.5, np.float32), depth, rng, labels=labels,
+                    part_ids=parts.astype(np.uint16))
+
+
+def test_the_seafloor_casts_no_shadow_on_itself_but_takes_one_from_what_stands_on_it():
+    """A plane cannot hide a lamp from itself: the segment from a floor point to a lamp on the camera's side of the
+    floor stays on that side, and a lamp below the floor gives it no light (Lambert). The screen-space test on a
+    floor seen at grazing angles changes its depth by more than the bias from one pixel row to the next (8 cm at
+    3 m with the camera 0.5 m above it), and samples rounded to a pixel found the floor in front of them: with
+    the camera 0.5 m above it and a lamp 0.6 m beside and 0.3 m below the camera, 3,759 of 320x240 pixels.
+    Now none, for lamps above, beside, at the floor's height and below it; a box standing on the floor still
+    throws its shadow on it, to the side away from the lamp."""
+    from uw_sil.sim.effects.artificial_light import _shadow_grid, _visibility_on
+
+    cam = CameraModel.from_fov(320, 240, 70.0)
+    for height in (0.5, 0.85):
+        g = _shadow_grid(_floor_scene(cam, height))
+        for L in ((0.6, -0.3, 0.0), (0.6, 0.3, 0.0), (1.5, 0.8, 0.0), (0.0, 0.45, 0.0), (-0.3, 0.8, 0.1),
+                  (0.2, 1.0, 0.0)):
+            assert (_visibility_on(g, np.asarray(L, np.float32)) == 1).all(), (height, L)
+    geom = _floor_scene(cam, 0.5, block=True)
+    g = _shadow_grid(geom)
+    u = np.arange(cam.width)[None, :].repeat(cam.height, 0)
+    on_floor = geom.labels == 2
+    for ox in (0.6, -0.6):
+        vis = _visibility_on(g, np.asarray((ox, 0.0, 0.0), np.float32))
+        dark = (vis < 1) & on_floor
+        assert dark.sum() > 50
+        # behind the box, on the side away from the lamp
+        assert (np.sign(u[dark] - cam.cx) == -np.sign(ox)).mean() > 0.9
+
+
 def test_artificial_light_casts_shadows_that_move_with_the_lamp():
     """A lamp beside the camera: the block hides it from a strip of the wall on the side away from the lamp, as
     wide as the geometry says (the shadow of the block's edge minus the part of the wall the block hides from the
@@ -240,24 +289,35 @@ def test_artificial_light_casts_shadows_that_move_with_the_lamp():
 def test_the_shadow_test_skips_only_points_it_would_find_lit(frames, renderer):
     """The shadow test first drops the points that no occluder can reach (a depth erosion over the lamp's parallax
     radius): with every point tested instead, the visibility is the same, on the panel near, tilted and far, for
-    lamps beside, above, far to the side of and at the camera, and on two block scenes. (A radius taken from the
-    occluder's thickness, 0.3 m, instead of the deepest sample, fails on the deeper block.) One grid serves every
-    lamp, as the candidates of a fit share it: the points kept for testing depend on the lamp only through the
-    radius and are kept per radius, so lamps mirrored or moved at the same distance reuse them."""
+    lamps beside, above, below, far to the side of and at the camera, on two block scenes, on the panel above a
+    seafloor and on a block standing on a seafloor. (A radius taken from the occluder's thickness, 0.3 m, instead
+    of the deepest sample, fails on the deeper block; one taken at the band's farthest depth instead of its
+    nearest fails too.) One grid serves every lamp, as the candidates of a fit share it: the points kept for
+    testing depend on the lamp only through the radii and are kept per set of radii, so lamps mirrored or moved at
+    the same distance reuse them."""
     from uw_sil.sim.effects.artificial_light import _shadow_grid, _visibility_on
     from uw_sil.sim.model import Geometry
 
     cam = renderer.camera
-    grids = [_shadow_grid(Geometry.from_render(rr, cam, T)) for T, rr in frames.values()]
+    from uw_sil.sim.effects.unmodeled_geometry import UnmodeledGeometry
+
+    cam = renderer.camera
+    ug = UnmodeledGeometry()
+    floor = {**{p.name: p.default for p in ug.params}, **ug.severities["strong"]}
+    geoms = [Geometry.from_render(rr, cam, T) for T, rr in frames.values()]
+    # the panel above a seafloor (its points are tested against everything but the floor)
+    geoms += [ug.add_floor(g, dict(floor, floor_y=y)) for g in geoms for y in (-0.4, -0.85)]
     cam2 = CameraModel.from_fov(320, 240, 70.0)
-    grids.append(_shadow_grid(_block_scene(cam2)[0]))
+    geoms.append(_block_scene(cam2)[0])
     # a block 0.6 m in front of the wall: its shadow reaches ~50 px from it, found by samples 0.3-0.5 m deep
-    grids.append(_shadow_grid(_block_scene(cam2, z_block=1.4)[0]))
+    geoms.append(_block_scene(cam2, z_block=1.4)[0])
+    geoms.append(_floor_scene(cam2, block=True))
+    grids = [_shadow_grid(g) for g in geoms]
     shadowed = 0
     for g in grids:
         # (the lamp at the camera first: its radius is the smallest, its points to test the fewest)
         for L in ((0.0, 0.0, 0.0), (0.6, -0.3, 0.0), (-0.35, 0.0, 0.0), (1.5, 0.8, 0.0), (0.0, -0.5, 0.1),
-                  (0.35, 0.0, 0.0), (0.0, 0.6, 0.0)):
+                  (0.35, 0.0, 0.0), (0.0, 0.6, 0.0), (0.6, 0.2, 0.0)):
             L = np.asarray(L, np.float32)
             fast = _visibility_on(g, L)
             np.testing.assert_array_equal(fast, _visibility_on(g, L, prune=False))
