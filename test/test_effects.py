@@ -242,6 +242,29 @@ def test_the_seafloor_casts_no_shadow_on_itself_but_takes_one_from_what_stands_o
         assert (np.sign(u[dark] - cam.cx) == -np.sign(ox)).mean() > 0.9
 
 
+def test_a_seafloor_on_a_reduced_frame_is_added_to_its_finer_view_too(renderer):
+    """On a reduced frame the lamps' shadows are tested on the finer view (``Geometry.fine``); a seafloor the model
+    adds must be in that view as well, or the shadow test runs on the reduced frame, without the floor's relief to
+    the panel, wherever a seafloor is fitted (it was: ``replace`` drops the finer view)."""
+    from uw_sil.sim.effects.unmodeled_geometry import UnmodeledGeometry
+    from uw_sil.sim.model import Geometry
+
+    T = facing_pose(2.0, pitch=0.1)
+    cam = renderer.camera                                          # 160x120, the finer view
+    small = cam.binned(2)
+    fine = Geometry.from_render(renderer.render(T), cam, T)
+    coarse = Geometry(small, np.zeros((small.height, small.width, 3), np.float32),
+                      fine.depth[::2, ::2], fine.range[::2, ::2], labels=fine.labels[::2, ::2],
+                      part_ids=fine.part_ids[::2, ::2], pose=T, fine=fine)
+    ug = UnmodeledGeometry()
+    floor = {**{p.name: p.default for p in ug.params}, **ug.severities["strong"]}
+    out = ug.add_floor(coarse, floor)
+    assert out.fine is not None and out.fine.shape == fine.shape
+    share, share_fine = (out.labels == 2).mean(), (out.fine.labels == 2).mean()
+    assert share > 0.1 and abs(share - share_fine) < 0.02
+    np.testing.assert_array_equal(out.fine.labels, ug.add_floor(fine, floor).labels)
+
+
 def test_artificial_light_casts_shadows_that_move_with_the_lamp():
     """A lamp beside the camera: the block hides it from a strip of the wall on the side away from the lamp, as
     wide as the geometry says (the shadow of the block's edge minus the part of the wall the block hides from the

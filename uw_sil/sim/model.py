@@ -145,8 +145,8 @@ class Geometry:
         return self._normals
 
     def replace(self, **kw) -> "Geometry":
-        """A new geometry with some arrays replaced (``rgb depth range_m labels part_ids pose X normals``);
-        cached derived arrays are dropped unless given."""
+        """A new geometry with some arrays replaced (``rgb depth range_m labels part_ids pose X normals fine``);
+        cached derived arrays and the finer view are dropped unless given."""
         args = dict(rgb=self.rgb, depth=self.depth, range_m=self.range, labels=self.labels,
                     part_ids=self.part_ids, pose=self.pose, X=None, normals=None)
         args.update(kw)

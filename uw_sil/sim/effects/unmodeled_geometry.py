@@ -161,5 +161,7 @@ class UnmodeledGeometry(Effect):
         zf = np.where(sel, z, np.float32(0))
         X = np.where(sel[..., None], np.stack([xt * zf, yt * zf, zf], axis=-1), geom.X)
         normals = np.where(sel[..., None], n_c.astype(np.float32), geom.normals)
+        # the finer view of a reduced frame (the lamps' shadows) gets the floor too
+        fine = None if geom.fine is None else self.add_floor(geom.fine, values)
         return geom.replace(rgb=rgb, depth=depth, range_m=rng_arr, labels=labels, part_ids=part, X=X,
-                            normals=normals)
+                            normals=normals, fine=fine)
