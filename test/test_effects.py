@@ -242,10 +242,12 @@ def test_the_seafloor_casts_no_shadow_on_itself_but_takes_one_from_what_stands_o
         assert (np.sign(u[dark] - cam.cx) == -np.sign(ox)).mean() > 0.9
 
 
-def test_a_seafloor_on_a_reduced_frame_is_added_to_its_finer_view_too(renderer):
+def test_a_seafloor_on_a_reduced_frame_is_added_to_its_finer_view_too(renderer, monkeypatch):
     """On a reduced frame the lamps' shadows are tested on the finer view (``Geometry.fine``); a seafloor the model
     adds must be in that view as well, or the shadow test runs on the reduced frame, without the floor's relief to
-    the panel, wherever a seafloor is fitted (it was: ``replace`` drops the finer view)."""
+    the panel, wherever a seafloor is fitted (it was: ``replace`` drops the finer view). That view is made when it
+    is first read (a floor fitted without lamps never needs it), with the floor's shape only: its depth, points and
+    labels those of the floor with its colour."""
     from uw_sil.sim.effects.unmodeled_geometry import UnmodeledGeometry
     from uw_sil.sim.model import Geometry
 
@@ -258,11 +260,43 @@ def test_a_seafloor_on_a_reduced_frame_is_added_to_its_finer_view_too(renderer):
                       part_ids=fine.part_ids[::2, ::2], pose=T, fine=fine)
     ug = UnmodeledGeometry()
     floor = {**{p.name: p.default for p in ug.params}, **ug.severities["strong"]}
+    calls = []
+    real = UnmodeledGeometry.add_floor
+    monkeypatch.setattr(UnmodeledGeometry, "add_floor",
+                        lambda self, g, v, **kw: calls.append(g) or real(self, g, v, **kw))
     out = ug.add_floor(coarse, floor)
-    assert out.fine is not None and out.fine.shape == fine.shape
+    assert calls == [coarse] and out.has_finer_view                 # the finer view not made yet
+    assert out.fine is not None and out.fine.shape == fine.shape and calls[1] is fine
+    assert out.fine is out.fine and len(calls) == 2                # made once
     share, share_fine = (out.labels == 2).mean(), (out.fine.labels == 2).mean()
     assert share > 0.1 and abs(share - share_fine) < 0.02
-    np.testing.assert_array_equal(out.fine.labels, ug.add_floor(fine, floor).labels)
+    whole = real(ug, fine, floor)
+    for name in ("labels", "part_ids", "depth", "range", "X"):
+        np.testing.assert_array_equal(getattr(out.fine, name), getattr(whole, name))
+
+
+def test_a_pose_correction_on_a_reduced_frame_moves_its_finer_view_too(renderer):
+    """The same for the pose error's warp: the finer view is seen from the moved camera (made when read), so the
+    lamps' shadows are tested on the corrected view at twice the resolution; its depth, labels and points are those
+    of the whole warp of the finer view."""
+    from uw_sil.sim.effects.pose_error import rotation_matrix, warp_geometry
+    from uw_sil.sim.model import Geometry
+
+    T = facing_pose(2.0)
+    cam = renderer.camera
+    small = cam.binned(2)
+    fine = Geometry.from_render(renderer.render(T), cam, T)
+    coarse = Geometry(small, np.zeros((small.height, small.width, 3), np.float32), fine.depth[::2, ::2],
+                      fine.range[::2, ::2], labels=fine.labels[::2, ::2], part_ids=fine.part_ids[::2, ::2], pose=T,
+                      fine=fine)
+    R, t = rotation_matrix((0.0, 0.02, 0.01)), np.array([0.05, -0.03, 0.04])
+    out = warp_geometry(coarse, R, t)
+    assert out.has_finer_view and out.fine.shape == fine.shape
+    whole = warp_geometry(fine, R, t)
+    for name in ("labels", "part_ids", "depth", "range", "X"):
+        np.testing.assert_array_equal(getattr(out.fine, name), getattr(whole, name))
+    moved = (out.fine.labels[::2, ::2] != fine.labels[::2, ::2]).mean()
+    assert moved > 0.01 and ((out.fine.labels[::2, ::2] != out.labels).mean() < 0.02)
 
 
 def test_artificial_light_casts_shadows_that_move_with_the_lamp():

@@ -74,7 +74,8 @@ class Geometry:
     fine : Geometry or None
         The same view at an integer multiple of this resolution, for effects whose detail is finer than these
         pixels (the lamps' cast shadows of a handle a few pixels wide): they compute on it and average over
-        each block. None: this geometry is the finest there is.
+        each block. None: this geometry is the finest there is. May be given as a function that makes it,
+        called when it is first read (a geometry effect's finer view costs nothing where no effect reads it).
     """
 
     def __init__(self, camera, rgb, depth, range_m, labels=None, part_ids=None, pose=None,
@@ -107,9 +108,28 @@ class Geometry:
         self._X = X
         self._normals = normals
         self._rays = None
-        self.fine = fine
-        if fine is not None and (fine.shape[0] % h or fine.shape[1] % w or fine.shape[0] // h != fine.shape[1] // w):
+        self._fine = fine
+        if fine is not None and not callable(fine):
+            self._check_fine(fine)
+
+    def _check_fine(self, fine) -> None:
+        h, w = self.shape
+        if fine.shape[0] % h or fine.shape[1] % w or fine.shape[0] // h != fine.shape[1] // w:
             raise ValueError(f"fine geometry {fine.shape} is not an integer multiple of ({h}, {w})")
+
+    @property
+    def has_finer_view(self) -> bool:
+        """Whether :attr:`fine` is (or will be made) a finer view, without making it."""
+        return self._fine is not None
+
+    @property
+    def fine(self) -> "Optional[Geometry]":
+        if callable(self._fine):
+            g = self._fine()
+            if g is not None:
+                self._check_fine(g)
+            self._fine = g
+        return self._fine
 
     @property
     def shape(self) -> tuple:

@@ -31,9 +31,11 @@ the image, and the point is in shadow when the surface seen there lies in front 
 than a bias (1 cm plus 0.75 pixel footprints) and less than 30 cm (a thin object far in front of the segment
 does not hide it). With the lamps within a metre of the camera the occluders of the panel's relief are in
 view, which is what makes the camera's depth map sufficient; what the camera cannot see (the back of an
-object) casts no shadow here. The binary test is averaged over 3x3 pixels of the same surface (soft edges:
+object) casts no shadow here, and a seafloor does not shadow itself (a plane cannot hide a lamp on the camera's
+side from its own points). The binary test is averaged over 3x3 pixels of the same surface (soft edges:
 a lamp of a few centimetres); on a reduced frame it runs at twice its resolution (``Geometry.fine``) and is
-averaged over each block, since a lever's shadow is a few full-resolution pixels wide. The lamp positions are
+averaged over each block, since a lever's shadow is a few full-resolution pixels wide (a seafloor the model adds
+and a pose it corrects are applied to that view too). The lamp positions are
 rounded to 5 cm for it, so that the candidates of a fit share their shadows: a lamp housing is 5-10 cm across
 (its penumbra is wider than what 2.5 cm of position moves), and at 1.3 m moving the lamp by 2.5 cm in x and y
 changed 7 % of the shadows' mass (2-4 % of the panel is in shadow). No parameter: shadows follow from the

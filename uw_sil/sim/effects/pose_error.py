@@ -21,6 +21,8 @@ corrected geometry (bias only).
 """
 from __future__ import annotations
 
+import functools
+
 import cv2
 import numpy as np
 
@@ -33,8 +35,11 @@ def rotation_matrix(rvec) -> np.ndarray:
     return cv2.Rodrigues(np.asarray(rvec, dtype=np.float64).reshape(3, 1))[0]
 
 
-def warp_geometry(geom, R: np.ndarray, t: np.ndarray, iterations: int = 4):
-    """Geometry seen from the camera moved by ``X_true = R X_rec + t`` (see the module docstring)."""
+def warp_geometry(geom, R: np.ndarray, t: np.ndarray, iterations: int = 4, colour: bool = True):
+    """Geometry seen from the camera moved by ``X_true = R X_rec + t`` (see the module docstring). ``colour``
+    False: its shape only (depth, range, labels, parts, points; the colour black, the normals made from the depth
+    when read), as the finer view of a reduced frame needs it (the lamps' shadow test), made when that view is
+    first read."""
     cam = geom.camera
     h, w = geom.shape
     fx, fy, cx, cy = (np.float32(v) for v in (cam.fx, cam.fy, cam.cx, cam.cy))
@@ -70,19 +75,25 @@ def warp_geometry(geom, R: np.ndarray, t: np.ndarray, iterations: int = 4):
     back_u = fx * Xn[0] / zn + cx - np.arange(w, dtype=np.float32)[None, :]
     back_v = fy * Xn[1] / zn + cy - np.arange(h, dtype=np.float32)[:, None]
     hit = hit & (Xn[2] > 0) & (np.abs(back_u) < 1.0) & (np.abs(back_v) < 1.0)
-    mapx, mapy = u.astype(np.float32), v.astype(np.float32)
-    rgb_lin = cv2.remap(geom.rgb, mapx, mapy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-    cover = cv2.remap(geom.hit.astype(np.float32), mapx, mapy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-    rgb_near = geom.rgb.reshape(-1, 3).take(idx, axis=0)
-    rgb = np.where((cover > 0.999)[..., None], rgb_lin, rgb_near)
-    rgb[~hit] = 0.0
+    if colour:
+        mapx, mapy = u.astype(np.float32), v.astype(np.float32)
+        rgb_lin = cv2.remap(geom.rgb, mapx, mapy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        cover = cv2.remap(geom.hit.astype(np.float32), mapx, mapy, cv2.INTER_LINEAR,
+                          borderMode=cv2.BORDER_CONSTANT)
+        rgb_near = geom.rgb.reshape(-1, 3).take(idx, axis=0)
+        rgb = np.where((cover > 0.999)[..., None], rgb_lin, rgb_near)
+        rgb[~hit] = 0.0
+    else:
+        rgb = np.zeros(geom.rgb.shape, np.float32)
     Xn = [np.where(hit, x, np.float32(0)) for x in Xn]
     X = np.stack(Xn, axis=-1).astype(np.float32)
     depth_new = np.where(hit, Xn[2], np.float32(np.inf)).astype(np.float32)
     range_new = np.where(hit, np.sqrt(Xn[0] * Xn[0] + Xn[1] * Xn[1] + Xn[2] * Xn[2]), np.float32(np.inf))
-    ns = [geom.normals[..., k].ravel().take(idx) for k in range(3)]
-    normals = np.stack([np.where(hit, R32[i, 0] * ns[0] + R32[i, 1] * ns[1] + R32[i, 2] * ns[2], np.float32(0))
-                        for i in range(3)], axis=-1)
+    normals = None
+    if colour:
+        ns = [geom.normals[..., k].ravel().take(idx) for k in range(3)]
+        normals = np.stack([np.where(hit, R32[i, 0] * ns[0] + R32[i, 1] * ns[1] + R32[i, 2] * ns[2], np.float32(0))
+                            for i in range(3)], axis=-1).astype(np.float32)
     labels = np.where(hit, geom.labels.ravel().take(idx), 0).astype(np.uint8)
     part_ids = np.where(hit, geom.part_ids.ravel().take(idx), 0).astype(geom.part_ids.dtype)
     pose = None
@@ -91,8 +102,15 @@ def warp_geometry(geom, R: np.ndarray, t: np.ndarray, iterations: int = 4):
         D[:3, :3] = R
         D[:3, 3] = t
         pose = D @ geom.pose
-    return geom.replace(rgb=rgb.astype(np.float32), depth=depth_new, range_m=range_new.astype(np.float32), labels=labels,
-                        part_ids=part_ids, pose=pose, X=X, normals=normals.astype(np.float32))
+    # the finer view of a reduced frame (the lamps' shadows) is seen from the moved camera too, when it is read
+    fine = functools.partial(_warped_finer_view, geom, R, t, iterations) if geom.has_finer_view else None
+    return geom.replace(rgb=rgb.astype(np.float32), depth=depth_new, range_m=range_new.astype(np.float32),
+                        labels=labels, part_ids=part_ids, pose=pose, X=X, normals=normals, fine=fine)
+
+
+def _warped_finer_view(geom, R, t, iterations: int):
+    """The finer view of ``geom`` seen from the moved camera (its shape only), for ``Geometry.fine``."""
+    return warp_geometry(geom.fine, R, t, iterations, colour=False)
 
 
 class PoseError(Effect):

@@ -13,6 +13,7 @@ the image bottom, plus range/colour changes. ``restore`` treats the floor as an 
 """
 from __future__ import annotations
 
+import functools
 import math
 import threading
 
@@ -92,7 +93,10 @@ class UnmodeledGeometry(Effect):
     def apply(self, terms, values, rng):
         terms.geom = self.add_floor(terms.geom, values)
 
-    def add_floor(self, geom, values):
+    def add_floor(self, geom, values, colour: bool = True):
+        """``geom`` with the floor in it; ``colour`` False: its shape only (depth, range, labels, parts, points,
+        normals; the colour as it was), as the finer view of a reduced frame needs it (the lamps' shadow test), made
+        when that view is first read."""
         if geom.pose is None:
             raise ValueError("unmodeled_geometry needs the camera pose T_cam_panel (pass pose=...)")
         T = geom.pose
@@ -118,38 +122,40 @@ class UnmodeledGeometry(Effect):
         xs = np.broadcast_to(xt, geom.shape)[sel] * zs
         ys = np.broadcast_to(yt, geom.shape)[sel] * zs
         rng_m = np.sqrt(xs * xs + ys * ys + zs * zs)
-        # in-plane coordinates of the floor points: P = R^T (X - t), u = P.e1, v = P.e2 (per component:
-        # (M, 3) @ (3, 3) products with mixed dtypes are slow in numpy)
-        q1 = (R @ e1).astype(np.float32)
-        q2 = (R @ e2).astype(np.float32)
-        c1, c2 = np.float32(t @ (R @ e1)), np.float32(t @ (R @ e2))
-        tu = (xs * q1[0] + ys * q1[1] + zs * q1[2] - c1) * np.float32(1 / TILE)
-        tv = -(xs * q2[0] + ys * q2[1] + zs * q2[2] - c2) * np.float32(1 / TILE)
-        # mip level from the pixel footprint on the floor
-        n32 = n_c.astype(np.float32)
-        cos_inc = np.abs(xs * n32[0] + ys * n32[1] + zs * n32[2]) / np.maximum(rng_m, np.float32(1e-6))
-        foot = rng_m / (np.float32(geom.camera.fx) * np.maximum(cos_inc, np.float32(0.05)))   # m per pixel
-        mips = _texture_mips()
-        lev = np.clip(np.rint(np.log2(np.maximum(foot * np.float32(TEX_SIZE / TILE), 1))), 0, len(mips) - 1)
-        lev = lev.astype(np.int8)
-        col = np.empty((zs.size, 3), np.float32)
-        for L in range(len(mips)):
-            m = lev == L
-            if not m.any():
-                continue
-            img = mips[L]
-            S = np.float32(img.shape[0] - 2)
-            mx = (tu[m] % 1) * S + np.float32(0.5)           # +1 for the wrap padding, -0.5 for pixel centres
-            my = (tv[m] % 1) * S + np.float32(0.5)
-            col[m] = _sample(img, mx, my)
-        shade = SHADE_AMBIENT + (1 - SHADE_AMBIENT) * max(0.0, -float(n_c[2]))
-        if values["contrast"] != 1:
-            mean = _texture_mean()
-            col = mean + np.float32(values["contrast"]) * (col - mean)
-        col = np.clip(col * np.float32(values["albedo"]), 0, 1) * np.float32(shade)
+        rgb = geom.rgb
+        if colour:
+            # in-plane coordinates of the floor points: P = R^T (X - t), u = P.e1, v = P.e2 (per component:
+            # (M, 3) @ (3, 3) products with mixed dtypes are slow in numpy)
+            q1 = (R @ e1).astype(np.float32)
+            q2 = (R @ e2).astype(np.float32)
+            c1, c2 = np.float32(t @ (R @ e1)), np.float32(t @ (R @ e2))
+            tu = (xs * q1[0] + ys * q1[1] + zs * q1[2] - c1) * np.float32(1 / TILE)
+            tv = -(xs * q2[0] + ys * q2[1] + zs * q2[2] - c2) * np.float32(1 / TILE)
+            # mip level from the pixel footprint on the floor
+            n32 = n_c.astype(np.float32)
+            cos_inc = np.abs(xs * n32[0] + ys * n32[1] + zs * n32[2]) / np.maximum(rng_m, np.float32(1e-6))
+            foot = rng_m / (np.float32(geom.camera.fx) * np.maximum(cos_inc, np.float32(0.05)))   # m per pixel
+            mips = _texture_mips()
+            lev = np.clip(np.rint(np.log2(np.maximum(foot * np.float32(TEX_SIZE / TILE), 1))), 0, len(mips) - 1)
+            lev = lev.astype(np.int8)
+            col = np.empty((zs.size, 3), np.float32)
+            for L in range(len(mips)):
+                m = lev == L
+                if not m.any():
+                    continue
+                img = mips[L]
+                S = np.float32(img.shape[0] - 2)
+                mx = (tu[m] % 1) * S + np.float32(0.5)           # +1 for the wrap padding, -0.5 for pixel centres
+                my = (tv[m] % 1) * S + np.float32(0.5)
+                col[m] = _sample(img, mx, my)
+            shade = SHADE_AMBIENT + (1 - SHADE_AMBIENT) * max(0.0, -float(n_c[2]))
+            if values["contrast"] != 1:
+                mean = _texture_mean()
+                col = mean + np.float32(values["contrast"]) * (col - mean)
+            col = np.clip(col * np.float32(values["albedo"]), 0, 1) * np.float32(shade)
 
-        rgb = geom.rgb.copy()
-        rgb[sel] = col
+            rgb = geom.rgb.copy()
+            rgb[sel] = col
         depth = geom.depth.copy()
         depth[sel] = zs
         rng_arr = geom.range.copy()
@@ -158,10 +164,17 @@ class UnmodeledGeometry(Effect):
         labels[sel] = 2
         part = geom.part_ids.astype(np.uint16, copy=True)
         part[sel] = 0xFFFF
-        zf = np.where(sel, z, np.float32(0))
-        X = np.where(sel[..., None], np.stack([xt * zf, yt * zf, zf], axis=-1), geom.X)
-        normals = np.where(sel[..., None], n_c.astype(np.float32), geom.normals)
-        # the finer view of a reduced frame (the lamps' shadows) gets the floor too
-        fine = None if geom.fine is None else self.add_floor(geom.fine, values)
+        X = normals = None                     # the shape only: made from the depth when read
+        if colour:
+            zf = np.where(sel, z, np.float32(0))
+            X = np.where(sel[..., None], np.stack([xt * zf, yt * zf, zf], axis=-1), geom.X)
+            normals = np.where(sel[..., None], n_c.astype(np.float32), geom.normals)
+        # the finer view of a reduced frame (the lamps' shadows) gets the floor too, when it is read
+        fine = functools.partial(_floor_in_finer_view, self, geom, dict(values)) if geom.has_finer_view else None
         return geom.replace(rgb=rgb, depth=depth, range_m=rng_arr, labels=labels, part_ids=part, X=X,
                             normals=normals, fine=fine)
+
+
+def _floor_in_finer_view(effect: UnmodeledGeometry, geom, values: dict):
+    """The finer view of ``geom`` with ``effect``'s floor (its shape only), for :attr:`Geometry.fine`."""
+    return effect.add_floor(geom.fine, values, colour=False)
