@@ -136,8 +136,9 @@ BAND_RATIO = 1.25
 
 def _depth_bands(z: np.ndarray, hit: np.ndarray, floor) -> list:
     """The hit pixels grouped by depth for the shadow test's pruning: bands ``[z0 q^k, z0 q^(k+1))`` from the nearest
-    depth ``z0`` (``q`` = :data:`BAND_RATIO`), each as ``(z_lo, flat indices, their depth less the bias, on the
-    seafloor)``; the points of a band use the parallax radius of its nearest depth (:func:`_candidates`)."""
+    depth ``z0`` (``q`` = :data:`BAND_RATIO`), each as ``(nearest depth in the band, flat indices, their depth less
+    the bias, on the seafloor)``; the points of a band use the parallax radius of its nearest depth
+    (:func:`_candidates`)."""
     idx = np.flatnonzero(hit)
     if idx.size == 0:
         return []
