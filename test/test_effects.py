@@ -263,7 +263,7 @@ def test_a_seafloor_on_a_reduced_frame_is_added_to_its_finer_view_too(renderer, 
     calls = []
     real = UnmodeledGeometry.add_floor
     monkeypatch.setattr(UnmodeledGeometry, "add_floor",
-                        lambda self, g, v, **kw: calls.append(g) or real(self, g, v, **kw))
+                        lambda self, g, *a, **kw: calls.append(g) or real(self, g, *a, **kw))
     out = ug.add_floor(coarse, floor)
     assert calls == [coarse] and out.has_finer_view                 # the finer view not made yet
     assert out.fine is not None and out.fine.shape == fine.shape and calls[1] is fine

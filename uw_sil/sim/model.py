@@ -35,6 +35,7 @@ Parameters of the effects as ROS parameters: ``<effect>.<param>`` (:func:`effect
 """
 from __future__ import annotations
 
+import functools
 import weakref
 from typing import NamedTuple, Optional
 
@@ -122,6 +123,11 @@ class Geometry:
         """Whether :attr:`fine` is (or will be made) a finer view, without making it."""
         return self._fine is not None
 
+    def finer_view_through(self, make):
+        """For ``replace(fine=...)`` of a geometry effect: this view's finer view passed through ``make`` (a picklable
+        function of one geometry), when it is first read; None where there is no finer view."""
+        return functools.partial(_through, make, self) if self._fine is not None else None
+
     @property
     def fine(self) -> "Optional[Geometry]":
         if callable(self._fine):
@@ -192,6 +198,11 @@ class Geometry:
 
 
 _GEOM_CACHE: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+
+
+def _through(make, geom: Geometry):
+    """``make`` of ``geom``'s finer view (:meth:`Geometry.finer_view_through`)."""
+    return make(geom.fine)
 
 
 def _camera_key(camera) -> tuple:

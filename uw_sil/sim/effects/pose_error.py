@@ -103,14 +103,9 @@ def warp_geometry(geom, R: np.ndarray, t: np.ndarray, iterations: int = 4, colou
         D[:3, 3] = t
         pose = D @ geom.pose
     # the finer view of a reduced frame (the lamps' shadows) is seen from the moved camera too, when it is read
-    fine = functools.partial(_warped_finer_view, geom, R, t, iterations) if geom.has_finer_view else None
+    fine = geom.finer_view_through(functools.partial(warp_geometry, R=R, t=t, iterations=iterations, colour=False))
     return geom.replace(rgb=rgb.astype(np.float32), depth=depth_new, range_m=range_new.astype(np.float32),
                         labels=labels, part_ids=part_ids, pose=pose, X=X, normals=normals, fine=fine)
-
-
-def _warped_finer_view(geom, R, t, iterations: int):
-    """The finer view of ``geom`` seen from the moved camera (its shape only), for ``Geometry.fine``."""
-    return warp_geometry(geom.fine, R, t, iterations, colour=False)
 
 
 class PoseError(Effect):

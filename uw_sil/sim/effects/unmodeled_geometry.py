@@ -170,11 +170,6 @@ class UnmodeledGeometry(Effect):
             X = np.where(sel[..., None], np.stack([xt * zf, yt * zf, zf], axis=-1), geom.X)
             normals = np.where(sel[..., None], n_c.astype(np.float32), geom.normals)
         # the finer view of a reduced frame (the lamps' shadows) gets the floor too, when it is read
-        fine = functools.partial(_floor_in_finer_view, self, geom, dict(values)) if geom.has_finer_view else None
+        fine = geom.finer_view_through(functools.partial(self.add_floor, values=dict(values), colour=False))
         return geom.replace(rgb=rgb, depth=depth, range_m=rng_arr, labels=labels, part_ids=part, X=X,
                             normals=normals, fine=fine)
-
-
-def _floor_in_finer_view(effect: UnmodeledGeometry, geom, values: dict):
-    """The finer view of ``geom`` with ``effect``'s floor (its shape only), for :attr:`Geometry.fine`."""
-    return effect.add_floor(geom.fine, values, colour=False)
