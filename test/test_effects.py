@@ -49,7 +49,7 @@ def test_registry_names_and_stages():
         assert e.name == name and get_effect(name) is e
         assert e.stage in STAGES
         assert set(e.severities) == {"mild", "strong"}
-        assert 1 <= len(e.params) <= 12
+        assert 1 <= len(e.params) <= 16
         assert isinstance(e.invertible, bool) and isinstance(e.random_per_frame, bool)
         for level in ("mild", "strong"):
             e.check(e.severity(level))                       # presets lie inside the bounds
@@ -447,6 +447,38 @@ def test_artificial_light_tilt_aims_the_beam_below_the_optical_axis():
     half = cam.height // 2
     low, high = (V[0.3][half:].sum() / V[0.3][:half].sum()), (V[0.0][half:].sum() / V[0.0][:half].sum())
     assert low > 1.2 * high, (low, high)
+
+
+def test_artificial_light_cross_adds_a_top_and_a_bottom_lamp_aimed_at_the_work_area():
+    """With ``cross`` the rig has a top lamp (``cross_balance`` 0) or a bottom lamp (1) on the camera's vertical,
+    ``cross_y`` from it, aimed at the pair's work area 2 m ahead: beyond it, on a wall 4 m ahead, a narrow top lamp
+    lights the wall brightest ``fy (cross_y (4 - 2) / 2) / 4`` pixels below the principal point and a bottom lamp as
+    far above it (within 4 px), both on the camera's column. The shares are shares: the light with ``cross`` 0.3 is
+    0.7 of the pair's plus 0.3 of the cross's, and with ``cross`` 0 the cross's height and balance change
+    nothing."""
+    from uw_sil.sim.effects.artificial_light import ArtificialLight, LampRig
+
+    cam = CameraModel.from_fov(320, 240, 70.0)
+    geom = _block_scene(cam, z_wall=4.0, half=0.0)[0]
+    eff = ArtificialLight()
+    st = eff.prepare(geom, cam)
+    vals = {p.name: p.default for p in eff.params}
+    vals.update(offset_x=0.5, offset_y=0.0, tilt=0.0, balance=0.5, half_angle=0.15, shape=2.0, power=1.0, fill=0.0,
+                cross_y=0.4)
+    a = np.zeros(3, np.float32)
+    dy = cam.fy * (0.4 * (4.0 - 2.0) / 2.0) / 4.0
+    for cb, row in ((0.0, cam.cy + dy), (1.0, cam.cy - dy)):
+        L = eff.illumination(st, LampRig({**vals, "cross": 0.7, "cross_balance": cb}), a)[1]
+        L = L - 0.3 * eff.illumination(st, LampRig({**vals, "cross": 0.0}), a)[1]      # the cross's part alone
+        r, c = np.unravel_index(int(np.argmax(L)), L.shape)
+        assert abs(r - row) <= 4 and abs(c - cam.cx) <= 4, (cb, r, c, row)
+    pair = eff.illumination(st, LampRig({**vals, "cross": 0.0}), a)
+    cross = eff.illumination(st, LampRig({**vals, "cross": 1.0, "cross_balance": 0.3}), a)
+    mix = eff.illumination(st, LampRig({**vals, "cross": 0.3, "cross_balance": 0.3}), a)
+    np.testing.assert_allclose(mix, 0.7 * pair + 0.3 * cross, rtol=1e-5, atol=1e-7)
+    assert np.abs(cross - pair).max() > 0.1 * pair.max()
+    other = eff.illumination(st, LampRig({**vals, "cross": 0.0, "cross_y": 0.9, "cross_balance": 1.0}), a)
+    np.testing.assert_array_equal(other, pair)
 
 
 def test_artificial_light_colour_tints_the_lamp_light_and_its_veil(frames, renderer):

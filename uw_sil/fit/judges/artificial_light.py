@@ -21,22 +21,26 @@ class ArtificialLightJudge(Judge):
     # the lamps' colour (tint) too: a white LED is not the white light the renders assume, and a colour the lamp
     # model cannot take is left to a per-channel gain of the camera response, named beside the lamps
     free = ("offset_x", "offset_y", "toe_in", "tilt", "half_angle", "shape", "balance", "fill", "power", "veil",
-            "tint_r", "tint_b")
+            "tint_r", "tint_b", "cross", "cross_y", "cross_balance")
     res = "low"
     cost = 9.0
     residual_evidence = True
     sigma = 0.12
-    # no uniform light at all (lamps alone: the deep sea), one lamp only, a symmetric pair
-    physical_bounds = ("fill", "balance")
+    # no uniform light at all (lamps alone: the deep sea), one lamp only, a symmetric pair; no top or bottom lamp,
+    # a top or a bottom lamp alone
+    physical_bounds = ("fill", "balance", "cross", "cross_balance")
     # a super-Gaussian beam tends to a top-hat as its exponent grows; a beam far wider than the view lights it
     # evenly
     saturates = {"shape": +1, "half_angle": +1}
     # far-apart rigs tried as least-squares starts (a symmetric toed-in pair; one strong lamp to one side;
-    # lamps as the only light): least squares from each, and θ picks
+    # lamps as the only light; a cross of four lamps around the camera, which the pair's start cannot reach: with
+    # no cross light its height and balance change nothing): least squares from each, and θ picks
     alt_starts = ({"offset_x": 0.5, "offset_y": -0.1, "toe_in": 0.2, "half_angle": 0.45, "balance": 0.5, "fill": 0.2},
                   {"offset_x": 0.8, "offset_y": -0.3, "toe_in": 0.0, "half_angle": 0.7, "balance": 0.1, "fill": 0.3},
                   {"offset_x": 0.4, "offset_y": -0.2, "toe_in": 0.1, "half_angle": 0.6, "balance": 0.5, "fill": 0.0,
-                   "veil": 0.01})
+                   "veil": 0.01},
+                  {"offset_x": 0.55, "offset_y": -0.1, "toe_in": 0.1, "half_angle": 0.6, "balance": 0.5, "fill": 0.1,
+                   "cross": 0.4, "cross_y": 0.45, "cross_balance": 0.4})
 
     def order(self, job):
         return self.proxy_share(job)
@@ -61,6 +65,13 @@ class ArtificialLightJudge(Judge):
                     f"light, {other})")
         else:
             lamp = f"a lamp about {off:.2f} m {side} of the camera"
+        cross = e.get("cross", 0.0)
+        if cross > 0.05:
+            cb = e.get("cross_balance", 0.0)
+            where = ("above" if cb < 0.2 else "below" if cb > 0.8 else
+                     f"above and below ({100 * (1 - cb):.0f} / {100 * cb:.0f} % of it)")
+            lamp += (f", and lamps {e.get('cross_y', 0):.2f} m {where} the camera with {100 * cross:.0f} % of the "
+                     f"lamps' light")
         tilt = math.degrees(e.get("tilt", 0.0))
         aim = f", aimed {abs(tilt):.0f}° {'below' if tilt > 0 else 'above'} the optical axis" if abs(tilt) >= 3 else ""
         return (f"the recording is lit by vehicle lamps the simulation lacks: brightness on the panel falls "

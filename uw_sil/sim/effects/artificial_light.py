@@ -1,11 +1,17 @@
-"""Vehicle lamps: the scene is lit by one or two lamps next to the camera, not by uniform light.
+"""Vehicle lamps: the scene is lit by lamps next to the camera, not by uniform light.
 
 The base model (and the renderer's shading) assume light that does not depend on where a surface is. At
 depth the only light is the vehicle's: lamp ``l`` at ``L_l`` in the camera frame (lamp 1 at
 ``(offset_x, offset_y, 0)``, lamp 2 mirrored at ``(-offset_x, offset_y, 0)``, weights ``1 - balance``
 and ``balance``; beam axes turned towards the optical axis by ``toe_in`` and pitched down by ``tilt``: an ROV's
 lamps are aimed at the work area in front of and below the camera, ``(-+sin(toe_in) cos(tilt), sin(tilt),
-cos(toe_in) cos(tilt))``, y down) gives a surface point ``X`` with normal ``n`` the relative irradiance::
+cos(toe_in) cos(tilt))``, y down). ROVs carry more lamps than a pair: a top light on the frame above the camera
+and often one below it. With ``cross`` > 0 the rig is a cross: that share of the light comes from a top lamp at
+``(0, -cross_y, 0)`` and a bottom lamp at ``(0, cross_y, 0)`` (weights ``1 - cross_balance`` and
+``cross_balance`` of it), aimed at the pair's work area ``(0, offset_y + R0 tan(tilt), R0)``; the pair keeps
+``1 - cross`` of the light. Lamps all around the camera light a facing scene nearly as one lamp at its centre,
+which a pair alone can only imitate by sitting on the camera. Lamp ``l`` gives a surface point ``X`` with normal
+``n`` the relative irradiance::
 
     E_c(X) = sum_l w_l P(theta_l) max(0, n . (L_l - X) / R_l) (R0 / R_l)^2 exp(-a_c (R_l - R0))
     P(theta) = exp(-ln 2 (theta / half_angle)^shape)              (beam profile, theta off the lamp axis)
@@ -316,17 +322,32 @@ def _visibility_on(g: dict, L: np.ndarray, prune: bool = True) -> np.ndarray:
 
 
 class LampRig:
-    """Lamp positions, axes, weights and beam of one parameter set (camera optical frame)."""
+    """Lamp positions, axes, weights and beam of one parameter set (camera optical frame).
+
+    Lamps 0 and 1 are the pair beside the camera; lamps 2 and 3 (when ``cross`` > 0) the top and the bottom lamp
+    of the cross, on the camera's vertical at ``(0, -+cross_y, 0)``, aimed at the pair's work area ``R0`` ahead."""
 
     def __init__(self, values):
         ox, oy, toe, tilt = values["offset_x"], values["offset_y"], values["toe_in"], values["tilt"]
         sgn = 1.0 if ox >= 0 else -1.0
         st, ct = math.sin(toe), math.cos(toe)
         sp, cp = math.sin(tilt), math.cos(tilt)
-        self.pos = np.array([[ox, oy, 0.0], [-ox, oy, 0.0]], np.float32)
-        self.axis = np.array([[-sgn * st * cp, sp, ct * cp], [sgn * st * cp, sp, ct * cp]], np.float32)
+        cross, cy, cb = values["cross"], values["cross_y"], values["cross_balance"]
+        self.pos = np.array([[ox, oy, 0.0], [-ox, oy, 0.0], [0.0, -cy, 0.0], [0.0, cy, 0.0]], np.float32)
+        ax = [[-sgn * st * cp, sp, ct * cp], [sgn * st * cp, sp, ct * cp]]
+        # the cross's lamps aim where the pair's tilt aims at R0 ahead: (0, oy + R0 tan(tilt), R0)
+        aim_y = oy + R0 * math.tan(tilt)
+        for y in (-cy, cy):
+            d = np.array([0.0, aim_y - y, R0])
+            ax.append(list(d / np.linalg.norm(d)))
+        self.axis = np.array(ax, np.float32)
         wb = values["balance"]
-        self.weights = [(0, 1.0 - wb), (1, wb)] if wb > 0 else [(0, 1.0)]
+        pair = [(0, 1.0 - wb), (1, wb)] if wb > 0 else [(0, 1.0)]
+        if cross > 0:
+            self.weights = [(l, (1.0 - cross) * w) for l, w in pair]
+            self.weights += [(l, cross * w) for l, w in ((2, 1.0 - cb), (3, cb)) if w > 0]
+        else:
+            self.weights = pair
         self.half = np.float32(values["half_angle"])
         self.shape = np.float32(values["shape"])
         self.power = float(values["power"])
@@ -336,6 +357,8 @@ class LampRig:
         # what the shape of the light depends on (power, fill, veil and tint only scale it)
         self.key = (float(ox), float(oy), float(toe), float(tilt), float(values["half_angle"]), float(values["shape"]),
                     float(wb))
+        if cross > 0:
+            self.key += (float(cross), float(cy), float(cb))
         # what the light on a point (:meth:`irradiance`) depends on
         self.light_key = self.key + (self.power, self.fill, self.tint.tobytes())
 
@@ -361,7 +384,8 @@ class ArtificialLight(Effect):
     stage = "radiance"
     invertible = True
     random_per_frame = False
-    summary = "1-2 vehicle lamps: beam profile, 1/R^2, exp(-a R_s), Lambert; lamp-lit backscatter veil"
+    summary = ("vehicle lamps (a pair, a top and a bottom lamp): beam profile, 1/R^2, exp(-a R_s), Lambert; "
+               "lamp-lit backscatter veil")
     params = (
         EffectParam("offset_x", 0.3, -1.5, 1.5, "m", "lamp 1 position right of the camera (lamp 2 at -offset_x)"),
         EffectParam("offset_y", -0.2, -1.0, 1.0, "m", "lamp height in the optical frame (y down: < 0 is above)"),
@@ -370,6 +394,10 @@ class ArtificialLight(Effect):
         EffectParam("half_angle", 0.6, 0.15, 1.4, "rad", "beam half width at half maximum"),
         EffectParam("shape", 2.0, 0.5, 8.0, "", "beam profile exponent: exp(-ln2 (theta/half_angle)^shape)"),
         EffectParam("balance", 0.5, 0.0, 0.5, "", "share of lamp 2 (0: one lamp, 0.5: a symmetric pair)"),
+        EffectParam("cross", 0.0, 0.0, 0.7, "",
+                    "share of the light from a top and a bottom lamp on the camera's vertical (0: the pair alone)"),
+        EffectParam("cross_y", 0.4, 0.1, 1.0, "m", "the top and the bottom lamp's distance above and below the camera"),
+        EffectParam("cross_balance", 0.0, 0.0, 1.0, "", "the bottom lamp's share of the cross (0: a top lamp only)"),
         EffectParam("power", 1.0, 0.1, 5.0, "", "lamp irradiance relative to the base model's light at 2 m"),
         EffectParam("fill", 1.0, 0.0, 1.0, "", "share of uniform light (1: no lamp effect)"),
         EffectParam("veil", 0.0, 0.0, 0.5, "1/m",
