@@ -47,6 +47,13 @@ def slow(shared, item):
     return item
 
 
+def package(shared, item):
+    """Where the worker's uw_sil comes from."""
+    import uw_sil
+
+    return os.path.dirname(os.path.abspath(uw_sil.__file__))
+
+
 def dies(shared, item):
     if item == 1:
         os.kill(os.getpid(), signal.SIGKILL)
@@ -137,6 +144,21 @@ def test_the_callers_script_is_not_run_again_in_the_workers(tmp_path):
                          env={**os.environ, "PYTHONPATH": os.pathsep.join([str(HERE), os.environ["PYTHONPATH"]])})
     assert out.returncode == 0, out.stderr
     assert out.stdout.splitlines() == ["script ran", "[2, 4, 6]"]
+
+
+def test_the_workers_run_the_callers_uw_sil_whatever_the_working_directory(tmp_path, monkeypatch):
+    """``python -m`` and ``-c`` put the working directory first on the path: run from another checkout, the
+    workers imported that one's uw_sil (a bench run there with this checkout's code on its PYTHONPATH refitted
+    vignetting with the other checkout's four parameters, and the parent's five-parameter model failed)."""
+    import uw_sil
+
+    other = tmp_path / "uw_sil"
+    other.mkdir()
+    (other / "__init__.py").write_text("raise ImportError('the checkout in the working directory')\n")
+    monkeypatch.chdir(tmp_path)
+    with WorkerPool(2) as pool:
+        got = pool.map(package, range(2))
+    assert got == [os.path.dirname(os.path.abspath(uw_sil.__file__))] * 2
 
 
 def test_a_diagnosis_is_the_same_with_one_process_or_two(tmp_path):

@@ -4,7 +4,7 @@ The pure-Python parts of the array work (small simulations, the optimizers' book
 candidate refits of a diagnosis on two threads ran together only 1.15x faster than one after the other
 (640x480 bag, 2 cores). :class:`WorkerPool` runs them in processes instead.
 
-Its workers are plain ``python -m uw_sil._shared.workers`` children that talk to the parent over their
+Its workers are plain ``python`` children running :func:`_serve` that talk to the parent over their
 standard input and output (length-prefixed pickles; what the work prints goes to standard error):
 
 - nothing is forked: a process that holds DDS or OpenGL threads (a ROS node, a renderer) can use it;
@@ -68,10 +68,14 @@ class _Worker:
         env = dict(os.environ)
         env[ENV] = "1"
         env["OPENBLAS_NUM_THREADS"] = env["OMP_NUM_THREADS"] = env["MKL_NUM_THREADS"] = "1"
-        # the same uw_sil as the parent's (a source checkout that is not installed, too)
+        # the same uw_sil as the parent's (a source checkout that is not installed, too). First on the path, in
+        # the place ``-m`` and ``-c`` give the working directory: another checkout there would shadow it (a bench
+        # run from one checkout with the code of another had its workers refit with the first one's effects)
         root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
         env["PYTHONPATH"] = os.pathsep.join([root] + [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p])
-        self.proc = subprocess.Popen([sys.executable, "-m", "uw_sil._shared.workers", *preload],
+        boot = (f"import sys; sys.path[0] = {root!r}; from uw_sil._shared.workers import _serve; "
+                f"sys.exit(_serve(sys.argv[1:]))")
+        self.proc = subprocess.Popen([sys.executable, "-c", boot, *preload],
                                      stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env)
         self.task: Optional[int] = None
         self.shared: Optional[int] = None
