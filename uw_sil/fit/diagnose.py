@@ -1051,7 +1051,7 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
         doubts = judge.plausibility(vals, flat)
         words = gain_words(a["before"], a["after"], r.statistic if judge.kind == "statistic" else None,
                            (a["residual_before"], a["residual_after"]) if a.get("criterion") == "residual" else None)
-        text = judge.explain(vals, words, sigs.get(e))
+        text = judge.explain(vals, words, sigs.get(e), camera=job.camera)
         pins = a.get("pinned") or {}
         if pins and all(abs(vals.get(n, np.inf) - v) < 1e-9 for n, v in pins["values"].items()):
             text += (f" — held at the nearest physically possible values ("

@@ -54,7 +54,7 @@ class ArtificialLightJudge(Judge):
                     "fill": float(np.clip(q["fill"], 0.0, 0.95)), "veil": 0.002}
         return {"fill": 0.8}
 
-    def explain(self, e, gain, sig):
+    def explain(self, e, gain, sig, camera=None):
         side, other = ("right", "left") if e.get("offset_x", 0) >= 0 else ("left", "right")
         bal = e.get("balance", 0)
         off = abs(e.get("offset_x", 0))

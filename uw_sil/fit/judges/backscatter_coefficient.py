@@ -25,7 +25,7 @@ class BackscatterCoefficientJudge(Judge):
                     "decay": 0.2}
         return {}
 
-    def explain(self, e, gain, sig):
+    def explain(self, e, gain, sig, camera=None):
         return (f"the backscatter builds up with other coefficients than the direct signal fades "
                 f"(β_B/β_D = {e.get('ratio_r', 1):.2f}, {e.get('ratio_g', 1):.2f}, {e.get('ratio_b', 1):.2f} "
                 f"for r, g, b; β_D falls with range by factor {1 + e.get('decay', 0):.1f} near the camera): an "
@@ -36,3 +36,11 @@ class BackscatterCoefficientJudge(Judge):
         bad = [f"{c} {e[f'ratio_{c}']:.2f}" for c in "rgb" if not lo <= e.get(f"ratio_{c}", 1.0) <= hi]
         return [f"β_B/β_D outside {lo}-{hi} ({', '.join(bad)}): more than the two coefficients differ in "
                 f"measured water"] if bad else []
+
+    def pinned(self, e):
+        """Ratios fitted outside the range measured water shows: each held at the nearest end of it, the others
+        refitted (:meth:`~uw_sil.fit.judges.base.Judge.pinned`): whether the recording needs the impossible
+        ratio, or β_B ≠ β_D within the range explains it too."""
+        lo, hi = RATIO_RANGE
+        return {f"ratio_{c}": float(min(max(e.get(f"ratio_{c}", 1.0), lo), hi)) for c in "rgb"
+                if not lo <= e.get(f"ratio_{c}", 1.0) <= hi}

@@ -352,7 +352,9 @@ class Judge:
 
     # ------------------------------------------------------------------ words
 
-    def explain(self, values: dict, gain: str, sig) -> str:
+    def explain(self, values: dict, gain: str, sig, camera=None) -> str:
+        """The verdict's sentence for fitted ``values`` (``gain``: the evidence in words; ``sig``: the effect's
+        signature; ``camera``: the frames' camera, for what the values mean in the image)."""
         return gain
 
     def on_bounds(self, values: dict) -> list:

@@ -17,7 +17,7 @@ class CameraResponseJudge(Judge):
     def start(self, job):
         return {"gamma": 1.1, "black": 0.01, "toe": 0.01}
 
-    def explain(self, e, gain, sig):
+    def explain(self, e, gain, sig, camera=None):
         toe = e.get("toe", 0.0)
         return (f"the camera maps light to grey levels differently: tone curve gamma {e.get('gamma', 1):.2f}"
                 + (f" (linear below {toe:.3f} of full scale)" if toe > 0 else "") + ", "

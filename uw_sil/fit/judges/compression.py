@@ -90,7 +90,7 @@ class CompressionJudge(Judge):
         ok = st["improvement"] > st["margin"]
         return ok, st["improvement"] / st["margin"] if ok else 0.0, "statistic"
 
-    def explain(self, e, gain, sig):
+    def explain(self, e, gain, sig, camera=None):
         q = e.get("quality", 100)
         return (f"the recording was stored compressed (JPEG/MJPEG-like 8x8 blocks, chroma subsampled): about IJG "
                 f"quality {q:.0f}, which costs {_psnr_note(q)}; the simulation's frames are compressed alike; {gain}")

@@ -30,7 +30,7 @@ class ForwardScatterJudge(Judge):
                     "width": float(np.clip(p.params["width_mrad_per_m"], 1, 40)), "tail": 0.3}
         return {"strength": 0.1, "width": 6.0, "tail": 0.3}
 
-    def explain(self, e, gain, sig):
+    def explain(self, e, gain, sig, camera=None):
         return (f"the recording is blurred by forward scattering, more at longer range: "
                 f"{100 * (1 - math.exp(-e.get('strength', 0) * 2.0)):.0f} % of the light at 2 m is spread over "
                 f"~{e.get('width', 0) * 2:.0f} mrad (halo share {e.get('tail', 0):.2f}); {gain}")

@@ -173,7 +173,7 @@ class MarineSnowJudge(Judge):
         ok = st["improvement"] > st["margin"] and st["theta_unclaimed"]["held"]
         return ok, st["improvement"] / (3 * st["margin"]) if ok else 0.0, "statistic"
 
-    def explain(self, e, gain, sig):
+    def explain(self, e, gain, sig, camera=None):
         dens = sig.stats.get("positive_per_mpx") if sig is not None else None
         extra = f" ({dens:.0f} bright specks per megapixel, new in every frame)" if dens is not None else ""
         return (f"marine snow: small bright particles in the lit water{extra}, about {e.get('density', 0):.0f} "

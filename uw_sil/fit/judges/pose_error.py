@@ -150,7 +150,7 @@ class PoseErrorJudge(Judge):
         absorbed = {**current.absorbed, self.effect: r.params["effects"][self.effect]}
         return job2, replace(current, theta_fit=r.theta_fit, sel_pf=np.asarray(r.sel_pf), absorbed=absorbed)
 
-    def explain(self, e, gain, sig):
+    def explain(self, e, gain, sig, camera=None):
         t = 100 * math.sqrt(sum(e.get(k, 0) ** 2 for k in ("tx", "ty", "tz")))
         rot = math.degrees(math.sqrt(sum(e.get(k, 0) ** 2 for k in ("rx", "ry", "rz"))))
         sh = sig.stats.get("shift_px_median") if sig is not None else None

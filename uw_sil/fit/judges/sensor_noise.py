@@ -329,7 +329,7 @@ class SensorNoiseJudge(Judge):
                     f"at most ~2 %): the fit may have taken what the model lacks on bright surfaces for noise"]
         return []
 
-    def explain(self, e, gain, sig):
+    def explain(self, e, gain, sig, camera=None):
         return (f"the camera noise has structure beyond white shot and read noise (which every camera has): "
                 f"shot gain {e.get('shot', 0):.2f} DN/DN and read noise {e.get('read', 0):.1f} DN, "
                 f"correlated over {e.get('corr', 0):.1f} px, fixed pattern {100 * e.get('fpn', 0):.1f} % gain, "

@@ -28,7 +28,7 @@ class UnmodeledGeometryJudge(Judge):
     def start(self, job):
         return {"floor_y": -0.9, "albedo": 0.8, "contrast": 0.6}
 
-    def explain(self, e, gain, sig):
+    def explain(self, e, gain, sig, camera=None):
         return (f"the recording shows structure where the scene model has open water — a seafloor about "
                 f"{abs(e.get('floor_y', 0)):.1f} m below the panel origin (albedo x{e.get('albedo', 1):.2f}, texture "
                 f"contrast {e.get('contrast', 1):.2f}); {gain}")

@@ -11,7 +11,7 @@ from .base import Judge
 
 class VignettingJudge(Judge):
     effect = "vignetting"
-    free = ("k1", "k2", "cx", "cy")
+    free = ("k1", "k2", "cx", "cy", "n")
     res = "low"
     residual_evidence = True
 
@@ -25,14 +25,18 @@ class VignettingJudge(Judge):
         if p is None or not p.params:
             return {"k1": -0.2}
         p = p.params
-        # proxy: exp(k1 t^2 + k2 t^4), t = tan of the field angle; effect: 1 + k1 rho^2 + k2 rho^4 with rho the
-        # radius over the image half-diagonal: match value at the corner and at half the radius
+        # proxy: exp(k1 t^2 + k2 t^4), t = tan of the field angle. Its t^2 term as the lens's cos^n law (cos^n =
+        # (1 + t^2)^(-n/2) = exp(-n t^2 / 2 + ...)), what is left as the polynomial 1 + k1 rho^2 + k2 rho^4 with rho
+        # the radius over the image half-diagonal: matched at the corner and at half the radius
+        n = float(np.clip(-2.0 * p.get("k1", 0.0), 0.0, 8.0))
         hd2 = ((cam.width / 2) ** 2 + (cam.height / 2) ** 2) / (cam.fx * cam.fy)
-        k1, k2 = p.get("k1", 0.0) * hd2, p.get("k2", 0.0) * hd2 * hd2
-        corner, mid = math.exp(k1 + k2), math.exp(k1 * 0.25 + k2 * 0.0625)
-        K = np.linalg.solve(np.array([[1.0, 1.0], [0.25, 0.0625]]), [corner - 1, mid - 1])
+
+        def rest(t2):
+            return math.exp(p.get("k1", 0.0) * t2 + p.get("k2", 0.0) * t2 * t2) * (1 + t2) ** (n / 2)
+
+        K = np.linalg.solve(np.array([[1.0, 1.0], [0.25, 0.0625]]), [rest(hd2) - 1, rest(hd2 / 4) - 1])
         half_diag = math.hypot(cam.width / 2, cam.height / 2)
-        return {"k1": float(np.clip(K[0], -1.2, 0.5)), "k2": float(np.clip(K[1], -0.6, 0.6)),
+        return {"k1": float(np.clip(K[0], -1.2, 0.5)), "k2": float(np.clip(K[1], -0.6, 0.6)), "n": n,
                 "cx": float(np.clip(p.get("cx", 0) * cam.fx / half_diag, -0.2, 0.2)),
                 "cy": float(np.clip(p.get("cy", 0) * cam.fy / half_diag, -0.2, 0.2))}
 
@@ -50,8 +54,18 @@ class VignettingJudge(Judge):
         state = eff.prepare(SimpleNamespace(shape=(camera.height, camera.width)), camera)
         return bool(eff.falloff(state, {**eff.defaults(), **values}).min() >= 1.0)
 
-    def explain(self, e, gain, sig):
-        k1, k2 = e.get("k1", 0), e.get("k2", 0)
+    def explain(self, e, gain, sig, camera=None):
+        k1, k2, n = e.get("k1", 0), e.get("k2", 0), e.get("n", 0)
+        corner = f"corner brightness {100 * self.corner(e, camera):.0f} % of the centre, " if camera else ""
+        law = f"the lens's cos^{n:.1f} law times " if n >= 0.05 else ""
         return (f"the image darkens towards the corners the same way in every frame and in the water as on the "
-                f"panel (lens vignetting): corner brightness {100 * (1 + k1 + k2):.0f} % of the centre "
-                f"(k1 {k1:.2f}, k2 {k2:.2f}); {gain}")
+                f"panel (lens vignetting): {corner}{law}1 {k1:+.2f} rho² {k2:+.2f} rho⁴; {gain}")
+
+    @staticmethod
+    def corner(e, camera) -> float:
+        """Relative illumination in the darkest corner of ``camera``'s image."""
+        from ...sim.effects import get_effect
+
+        eff = get_effect("vignetting")
+        state = eff.prepare(SimpleNamespace(shape=(camera.height, camera.width)), camera)
+        return float(eff.falloff(state, {**eff.defaults(), **e}).min())
