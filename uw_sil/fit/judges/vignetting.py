@@ -46,24 +46,18 @@ class VignettingJudge(Judge):
         numbers (a refit can end there: it is where the image no longer depends on them)."""
         if super().neutral(values, camera):
             return True
-        if camera is None:
-            return False
-        from ...sim.effects import get_effect
-
-        eff = get_effect("vignetting")
-        state = eff.prepare(SimpleNamespace(shape=(camera.height, camera.width)), camera)
-        return bool(eff.falloff(state, {**eff.defaults(), **values}).min() >= 1.0)
+        return camera is not None and self.darkest(values, camera) >= 1.0
 
     def explain(self, e, gain, sig, camera=None):
         k1, k2, n = e.get("k1", 0), e.get("k2", 0), e.get("n", 0)
-        corner = f"corner brightness {100 * self.corner(e, camera):.0f} % of the centre, " if camera else ""
+        corner = f"corner brightness {100 * self.darkest(e, camera):.0f} % of the centre, " if camera else ""
         law = f"the lens's cos^{n:.1f} law times " if n >= 0.05 else ""
         return (f"the image darkens towards the corners the same way in every frame and in the water as on the "
                 f"panel (lens vignetting): {corner}{law}1 {k1:+.2f} rho² {k2:+.2f} rho⁴; {gain}")
 
     @staticmethod
-    def corner(e, camera) -> float:
-        """Relative illumination in the darkest corner of ``camera``'s image."""
+    def darkest(e, camera) -> float:
+        """The falloff's least value over ``camera``'s image (its darkest corner's relative illumination)."""
         from ...sim.effects import get_effect
 
         eff = get_effect("vignetting")
