@@ -137,15 +137,13 @@ def test_params_yaml_and_report(diagnoses):
     d = diagnoses["_dir"]
     p = yaml.safe_load((d / "v.yaml").read_text())["/**"]["ros__parameters"]
     assert p["effects"] == "vignetting"
-    from types import SimpleNamespace
-
+    from uw_sil.fit.judges import JUDGES
     from uw_sil.sim.camera import CameraModel
     from uw_sil.sim.effects import get_effect
 
-    eff = get_effect("vignetting")
-    state = eff.prepare(SimpleNamespace(shape=(120, 160)), CameraModel.from_fov(160, 120))
-    fitted = {n: p[f"vignetting.{n}"] for n in eff.param_names}
-    assert eff.falloff(state, fitted).min() < 0.6     # the strong preset darkens the corners to ~40 %
+    fitted = {n: p[f"vignetting.{n}"] for n in get_effect("vignetting").param_names}
+    # the strong preset darkens the corners to ~40 %
+    assert JUDGES["vignetting"].darkest(fitted, CameraModel.from_fov(160, 120)) < 0.6
     for k in ("a_r", "b_g", "rho_f", "fog_mode", "noise_sigma"):
         assert k in p
     from uw_sil.sim.model import flat_to_effect_params
