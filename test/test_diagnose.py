@@ -1084,6 +1084,38 @@ def test_a_fit_outside_physical_range_is_refitted_with_its_values_held_at_the_ne
     assert math.hypot(fp["artificial_light.offset_x"], fp["artificial_light.offset_y"]) == pytest.approx(1.0)
 
 
+def test_values_held_at_their_nearest_possible_ones_stay_held_in_every_later_fit(bags, monkeypatch):
+    """Once a refit with values held (as above) is accepted, every later fit of a model with that effect holds
+    them too: the backward elimination and the polish of the selected model (before, they took the plug-in
+    without the hold, and the polish, given a model with fewer free parameters than its plug-in listed, failed:
+    an own three-effect dive, β_B≠β_D held at a ratio of 0.5 and accepted in the last round). Planted: as
+    above, and a camera response that is always accepted, and the lamps only beside it, so that the lamps,
+    held, come last."""
+    import math
+
+    import uw_sil.fit.judges as jd
+    import uw_sil.fit.judges.artificial_light as al
+    from uw_sil.fit.diagnose import diagnose_bag
+
+    monkeypatch.setattr(al, "MIN_DISTANCE", 0.9)
+    monkeypatch.setattr(al, "ROV_DISTANCE", (1.0, 1.5))
+    cr, lamps = type(jd.JUDGES["camera_response"]), type(jd.JUDGES["artificial_light"])
+    monkeypatch.setattr(cr, "accept", lambda self, r, current, margin, residual=None: (True, 1000.0, "theta"))
+    monkeypatch.setattr(cr, "plausibility", lambda self, values, flat=(): [])
+    real = lamps.accept
+    monkeypatch.setattr(lamps, "accept", lambda self, r, current, *a, **k:
+                        real(self, r, current, *a, **k) if current.effects else (False, 0.0, "theta"))
+    said = []
+    doc = diagnose_bag(bags["artificial_light"], k=6, effects_allowed=["camera_response", "artificial_light"],
+                       max_effects=2, progress=said.append).to_json()
+    assert [s["chosen"] for s in doc["selection"] if s["chosen"]] == ["camera_response", "artificial_light"], \
+        doc["selection"]
+    assert any(m.startswith("polishing") for m in said), said
+    assert {v["effect"] for v in doc["verdict"]} == {"camera_response", "artificial_light"}
+    fp = doc["final"]["params"]
+    assert math.hypot(fp["artificial_light.offset_x"], fp["artificial_light.offset_y"]) == pytest.approx(1.0)
+
+
 def test_a_residual_acceptance_is_declined_when_its_model_loses_more_theta(bags, monkeypatch):
     """An effect accepted by the held-out residual adopts its least-squares fit. When θ scores that fit lower by
     more margins than the residual's gain (own lamp trial, 640x480: camera response taking 2 % of the residual

@@ -652,7 +652,6 @@ REFERENCE = ""
 def _refit_one(shared, effect):
     """One candidate's refit (:meth:`uw_sil.fit.judges.base.Judge.refit`), or the current model's own
     (``effect`` :data:`REFERENCE`), in a worker process or here; its time in ``extra["refit_s"]``."""
-    from .judges import JUDGES
     from .judges.base import reference_refit
 
     job, current, parents = shared
@@ -660,7 +659,7 @@ def _refit_one(shared, effect):
     if effect == REFERENCE:
         r = reference_refit(job, current)
     else:
-        r = JUDGES[effect].refit(job, current, parent=parents.get(effect))
+        r = job.judges[effect].refit(job, current, parent=parents.get(effect))
     if r is not None:
         r.extra["refit_s"] = time.perf_counter() - t
     return r
@@ -926,11 +925,14 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
             judge = JUDGES[e]
             t_adopt = time.perf_counter()
             keep = r_full is not None
+            if e in pinned_jobs:
+                # the refit accepted holds values at their nearest physically possible ones: so do its full-budget
+                # refit and every later fit of a model with it (the next rounds, the elimination, the polish)
+                job = replace(job, judges={**job.judges, e: pinned_jobs[e].judges[e]})
             if judge.kind == "theta" and not judge.absorb and job.max_iter > cheap.max_iter and not keep:
                 say(f"round {rnd}: refitting {current.name} + {e} with the full budget")
                 starts = ([r.extra["ls_x"]] if "ls_x" in r.extra else []) + ([] if r.started_at_current else [r.x])
-                job_e = replace(job, judges=pinned_jobs[e].judges) if e in pinned_jobs else job
-                r_full = job_e.judges[e].refit(job_e, current, x_starts=starts)
+                r_full = job.judges[e].refit(job, current, x_starts=starts)
                 r_full.extra.update({k: v for k, v in r.extra.items() if k.startswith("ls_") or k == "pinned"})
             if keep or (judge.kind == "theta" and not judge.absorb and job.max_iter > cheap.max_iter):
                 candidates.append({**_candidate_row(rnd, current, e, r_full, margin, True, strength, crit,
