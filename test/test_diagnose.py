@@ -767,8 +767,10 @@ def test_backward_elimination_keeps_effects_that_help_only_together(monkeypatch,
 
     def model(effects):
         effects = tuple(e for e in (A, C, F) if e in effects)
+        # the least-squares residual a hair lower with each effect: it agrees with θ, and is no evidence itself
         return Current(effects=effects, values={e: {} for e in effects}, base=np.zeros(7), theta_fit=0.9,
-                       sel_pf=np.asarray(held[frozenset(effects)], float), ls_sel_E=np.ones(4))
+                       sel_pf=np.asarray(held[frozenset(effects)], float),
+                       ls_sel_E=np.full(4, 1.0 + 0.001 * (3 - len(effects))))
 
     monkeypatch.setattr(dg, "_without_one", lambda shared, e: (model(set(shared[1].effects) - {e}), 0.0))
 
@@ -1114,6 +1116,30 @@ def test_values_held_at_their_nearest_possible_ones_stay_held_in_every_later_fit
     assert {v["effect"] for v in doc["verdict"]} == {"camera_response", "artificial_light"}
     fp = doc["final"]["params"]
     assert math.hypot(fp["artificial_light.offset_x"], fp["artificial_light.offset_y"]) == pytest.approx(1.0)
+
+
+def test_a_theta_gain_is_not_taken_where_the_least_squares_fit_does_not_lower_the_residual():
+    """θ's region histograms count pixels in bins: in a dark frame a brightness change far below the noise moves
+    many across a bin edge (a foreign strong β_B≠β_D trial: a camera response at nearly its identity gained +0.0064
+    held-out θ while its least-squares fit raised the held-out residual by 0.5 %). For the effects whose residual
+    speaks, a θ gain beyond its margin is taken only where that fit lowers the residual at all; the others (forward
+    scatter: θ sees its edges) and refits without a least-squares fit are judged by θ alone."""
+    from types import SimpleNamespace
+
+    from uw_sil.fit.judges import JUDGES
+
+    current = SimpleNamespace(sel_pf=np.array([0.90, 0.91, 0.92, 0.93]))
+    r = SimpleNamespace(sel_pf=current.sel_pf + 0.0064, extra={})
+    for e in ("camera_response", "vignetting", "artificial_light", "backscatter_coefficient"):
+        j = JUDGES[e]
+        assert j.residual_evidence
+        assert j.accept(r, current, 0.003, (-0.005, 0.02))[0] is False, e
+        assert j.accept(r, current, 0.003, (0.0, 0.02))[0] is False, e
+        assert j.accept(r, current, 0.003, (0.01, 0.02)) == (True, pytest.approx(0.0064 / 0.003), "theta"), e
+        assert j.accept(r, current, 0.003, None)[0] is True, e
+        assert j.accept(r, current, 0.01, (0.01, 0.02))[0] is False, e        # θ below its margin: as before
+    assert not JUDGES["forward_scatter"].residual_evidence
+    assert JUDGES["forward_scatter"].accept(r, current, 0.003, (-0.005, 0.02))[0] is True
 
 
 def test_a_residual_acceptance_is_declined_when_its_model_loses_more_theta(bags, monkeypatch):

@@ -338,7 +338,15 @@ class Judge:
         gain = float(np.mean(r.sel_pf - current.sel_pf))
         # a fit that holds the effect at its neutral values is the model without it (``extra["neutral"]``, and
         # ``"ls_neutral"`` for the least-squares fit): what it gained went to the current model's own parameters
-        if gain > margin and not r.extra.get("neutral"):
+        # Nor is a θ gain taken where the effect's least-squares fit does not lower the held-out residual at all
+        # (for the effects whose residual speaks, ``residual_evidence``): θ's region histograms count pixels in
+        # bins, and in a dark frame a brightness change far below the noise moves many across a bin edge. On a
+        # foreign strong β_B≠β_D trial a camera response at nearly its identity (gamma 1.00, gains 1.01/1.00/1.00)
+        # gained +0.0064 held-out θ, and a vignetting whose least-squares fit stayed neutral +0.0052, while the
+        # residual rose 0.5 % and stayed put; every θ acceptance of these effects measured on the multi-effect
+        # and physical dives lowered it by 8 % or more.
+        disowned = self.residual_evidence and residual is not None and not residual[0] > 0
+        if gain > margin and not r.extra.get("neutral") and not disowned:
             return True, gain / margin, "theta"
         # the residual speaks where θ is blind, not against it: an effect whose θ refit lowers held-out θ
         # beyond its margin is not taken on the residual. (Its least-squares fit, the model the residual
