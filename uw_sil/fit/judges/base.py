@@ -332,7 +332,8 @@ class Judge:
         return theta_refit(job, current, self, x_starts=x_starts, parent=parent)
 
     def accept(self, r: Refit, current: Current, margin: float, residual: Optional[tuple] = None) -> tuple:
-        """``(accepted, strength, criterion)``: held-out θ gain over the current model beyond ``margin``, or
+        """``(accepted, strength, criterion)``: held-out θ gain over the current model beyond ``margin`` (for the
+        effects whose residual speaks, only where their least-squares fit lowers the held-out residual at all), or
         else (smooth photometric effects) the held-out residual gain beyond its margin, ``residual`` =
         :func:`residual_gain`; strength is the gain in margins (it ranks the accepted candidates of a round)."""
         gain = float(np.mean(r.sel_pf - current.sel_pf))
