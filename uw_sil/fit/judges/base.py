@@ -344,8 +344,8 @@ class Judge:
         # bins, and in a dark frame a brightness change far below the noise moves many across a bin edge. On a
         # foreign strong β_B≠β_D trial a camera response at nearly its identity (gamma 1.00, gains 1.01/1.00/1.00)
         # gained +0.0064 held-out θ, and a vignetting whose least-squares fit stayed neutral +0.0052, while the
-        # residual rose 0.5 % and stayed put; every θ acceptance of these effects measured on the multi-effect
-        # and physical dives lowered it by 8 % or more.
+        # residual rose 0.5 % and stayed put; every θ acceptance of these effects in the documents looked at (that
+        # trial, two physical and one own multi-effect dive) lowered it by 8 % or more.
         disowned = self.residual_evidence and residual is not None and not residual[0] > 0
         if gain > margin and not r.extra.get("neutral") and not disowned:
             return True, gain / margin, "theta"
