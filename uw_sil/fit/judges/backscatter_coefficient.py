@@ -31,16 +31,20 @@ class BackscatterCoefficientJudge(Judge):
                 f"for r, g, b; β_D falls with range by factor {1 + e.get('decay', 0):.1f} near the camera): an "
                 f"additive bias on the panel that the water does not show; {gain}")
 
-    def ranges(self, e):
+    @staticmethod
+    def _outside(e) -> dict:
+        """The ratios of ``e`` outside :data:`RATIO_RANGE`, by channel (what is doubted and what is held)."""
         lo, hi = RATIO_RANGE
-        bad = [f"{c} {e[f'ratio_{c}']:.2f}" for c in "rgb" if not lo <= e.get(f"ratio_{c}", 1.0) <= hi]
-        return [f"β_B/β_D outside {lo}-{hi} ({', '.join(bad)}): more than the two coefficients differ in "
-                f"measured water"] if bad else []
+        return {c: e.get(f"ratio_{c}", 1.0) for c in "rgb" if not lo <= e.get(f"ratio_{c}", 1.0) <= hi}
+
+    def ranges(self, e):
+        bad = [f"{c} {v:.2f}" for c, v in self._outside(e).items()]
+        return [f"β_B/β_D outside {RATIO_RANGE[0]}-{RATIO_RANGE[1]} ({', '.join(bad)}): more than the two "
+                f"coefficients differ in measured water"] if bad else []
 
     def pinned(self, e):
         """Ratios fitted outside the range measured water shows: each held at the nearest end of it, the others
         refitted (:meth:`~uw_sil.fit.judges.base.Judge.pinned`): whether the recording needs the impossible
         ratio, or β_B ≠ β_D within the range explains it too."""
         lo, hi = RATIO_RANGE
-        return {f"ratio_{c}": float(min(max(e.get(f"ratio_{c}", 1.0), lo), hi)) for c in "rgb"
-                if not lo <= e.get(f"ratio_{c}", 1.0) <= hi}
+        return {f"ratio_{c}": float(min(max(v, lo), hi)) for c, v in self._outside(e).items()}
