@@ -143,22 +143,27 @@ BAND_RATIO = 1.25
 def _depth_bands(z: np.ndarray, hit: np.ndarray, floor) -> list:
     """The hit pixels grouped by depth for the shadow test's pruning: bands ``[z0 q^k, z0 q^(k+1))`` from the nearest
     depth ``z0`` (``q`` = :data:`BAND_RATIO`), each as ``(nearest depth in the band, flat indices, their depth less
-    the bias, on the seafloor)``; the points of a band use the parallax radius of its nearest depth
-    (:func:`_candidates`)."""
+    the bias, on the seafloor, their flat indices in the maps of :data:`PRUNE_BLOCK`-pixel blocks)``; the points of a
+    band use the parallax radius of its nearest depth (:func:`_candidates`)."""
     idx = np.flatnonzero(hit)
     if idx.size == 0:
         return []
     zs = z.ravel()[idx]
     z0 = float(zs.min())
-    k = np.floor(np.log(np.maximum(zs / np.float32(z0), 1)) / math.log(BAND_RATIO)).astype(np.int32)
+    # (int16: a stable sort of 16-bit keys is a radix sort, linear; the same order)
+    k = np.floor(np.log(np.maximum(zs / np.float32(z0), 1)) / math.log(BAND_RATIO)).astype(np.int16)
     order = np.argsort(k, kind="stable")
     k, idx = k[order], idx[order]
     cuts = np.flatnonzero(np.diff(k)) + 1
     bands = []
+    h, w = z.shape
+    f = PRUNE_BLOCK
+    blocks = ((np.arange(h) // f)[:, None] * -(-w // f) + (np.arange(w) // f)[None, :]).ravel()
     for part in np.split(np.arange(idx.size), cuts):
         i = idx[part]
         bands.append((float(z.ravel()[i].min()), i, z.ravel()[i] - np.float32(SHADOW_BIAS),
-                      None if floor is None else floor.ravel()[i]))
+                      None if floor is None else floor.ravel()[i],
+                      blocks[i]))
     return bands
 
 
@@ -173,7 +178,14 @@ def _block_min(z: np.ndarray) -> np.ndarray:
     hb, wb = -(-h // f), -(-w // f)
     pad = np.full((hb * f, wb * f), np.float32(1e6), np.float32)
     pad[:h, :w] = z
-    return pad.reshape(hb, f, wb, f).min(axis=(1, 3))
+    # (a minimum is exact in any order: over strided slices, 5x faster than a reduction over two inner axes)
+    cols = pad[:, 0::f].copy()
+    for k in range(1, f):
+        np.minimum(cols, pad[:, k::f], out=cols)
+    out = cols[0::f].copy()
+    for k in range(1, f):
+        np.minimum(out, cols[k::f], out=out)
+    return out
 
 
 def _nearest_within(z: np.ndarray, r: int, blocks: Optional[np.ndarray] = None) -> tuple:
@@ -207,11 +219,9 @@ def _candidates(g: dict, radii: tuple) -> np.ndarray:
     """Flat indices, ascending, of the points that can be in shadow (:func:`_visibility_on`): those of each depth band
     (``g["bands"]``) with a pixel at least the bias nearer than themselves within the band's radius (``radii``); for
     points of the seafloor a pixel of something else."""
-    w = g["z"].shape[1]
     maps = {}
     keep = []
-    for (_, i, zb, on_floor), r in zip(g["bands"], radii):
-        rows, cols = i // w, i % w
+    for (_, i, zb, on_floor, ib), r in zip(g["bands"], radii):
 
         def near(kind):
             got = maps.get((kind, r))
@@ -220,13 +230,28 @@ def _candidates(g: dict, radii: tuple) -> np.ndarray:
                     g["blocks"][kind] = _block_min(g[kind])
                 got = maps[kind, r] = _nearest_within(g[kind], r, g["blocks"][kind])
             m, f = got
-            return m[rows // f, cols // f]
+            return m.ravel()[i if f == 1 else ib]
 
         ok = near("zfin") < zb
         if on_floor is not None and on_floor.any():
             ok = np.where(on_floor, near("zsolid") < zb, ok)
         keep.append(i[ok])
     return np.sort(np.concatenate(keep)) if keep else np.zeros(0, np.int64)
+
+
+def _padded_depths(g: dict) -> np.ndarray:
+    """The shadow test's depths plus the bias in a frame of 1e6 m one pixel wide, flat: ``zfin``, then (with a
+    seafloor) ``zsolid`` (made once per grid)."""
+    zpad = g.get("zpad")
+    if zpad is None:
+        h, w = g["z"].shape
+        kinds = ("zfin",) if g["floor"] is None else ("zfin", "zsolid")
+        zpad = np.full((len(kinds), h + 2, w + 2), np.float32(1e6), np.float32)
+        for k, kind in enumerate(kinds):
+            zpad[k, 1:-1, 1:-1] = g[kind]
+            zpad[k, 1:-1, 1:-1] += np.float32(SHADOW_BIAS)
+        zpad = g["zpad"] = zpad.ravel()
+    return zpad
 
 
 def _visibility_on(g: dict, L: np.ndarray, prune: bool = True) -> np.ndarray:
@@ -270,14 +295,18 @@ def _visibility_on(g: dict, L: np.ndarray, prune: bool = True) -> np.ndarray:
     inv = np.float32(1.0) / np.maximum(dist, np.float32(1e-6))
     for k in range(3):
         D[k] *= inv
-    # the depth each point's samples are compared with: a point of the seafloor cannot be hidden by the seafloor
-    # (a plane with the lamp on the camera's side; with the lamp below it the floor gets none of its light), so
-    # it looks up the depth of what else there is (the second half of ``zz``)
-    if g["floor"] is None:
-        zz, base = g["zfin"].ravel(), 0
-    else:
-        zz = np.concatenate([g["zfin"].ravel(), g["zsolid"].ravel()])
-        base = g["floor"].ravel()[idx] * np.int64(h * w)
+    # the depth each point's samples are compared with (plus the bias), in a frame of 1e6 m one pixel wide: a sample
+    # projected outside the image reads as far away as water does and hides nothing. A point of the seafloor cannot
+    # be hidden by the seafloor (a plane with the lamp on the camera's side; with the lamp below it the floor gets
+    # none of its light), so it looks up the depth of what else there is (the second half of ``zpad``)
+    zpad = _padded_depths(g)
+    wp = w + 2
+    off = np.float32(wp + 1)                  # (u, v) -> (v + 1) wp + u + 1
+    if g["floor"] is not None:
+        off = np.where(g["floor"].ravel()[idx], np.float32((h + 2) * wp), np.float32(0)) + off
+    # a sample at most 2/3 of the way to the lamp (the lamp itself hides nothing): only where a point is that near
+    near_lamp = bool((dist <= np.float32(1.5) * SHADOW_T[-1]).any())
+    thick = np.float32(SHADOW_THICK - SHADOW_BIAS)
     shadow = np.zeros(idx.size, bool)
     # the samples along the way to the lamp as rows of one array (a few thousand points: one numpy call per
     # operation for all samples instead of one per sample; the same float32 arithmetic), in chunks of rows
@@ -287,12 +316,18 @@ def _visibility_on(g: dict, L: np.ndarray, prune: bool = True) -> np.ndarray:
         S2 = np.maximum(Xc[2] + t * D[2], np.float32(1e-3))
         u = np.rint((Xc[0] + t * D[0]) / S2 * np.float32(fx) + np.float32(cx))
         v = np.rint((Xc[1] + t * D[1]) / S2 * np.float32(fy) + np.float32(cy))
-        ok = (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1) & (dist > np.float32(1.5) * t)
-        # outside the image, or the lamp itself: no shadow; water reads as far away (1e6 m)
-        zq = zz[np.where(ok, v * w + u, 0).astype(np.int64) + base]
-        zq += np.float32(SHADOW_BIAS)
+        np.clip(u, -1, w, out=u)
+        np.clip(v, -1, h, out=v)
+        v *= np.float32(wp)                   # (whole numbers below 2^24: exact in float32)
+        v += u
+        v += off
+        zq = zpad[v.astype(np.intp)]
         zq += S2 * np.float32(SHADOW_PX / fx)
-        shadow |= (ok & (zq < S2) & (zq > S2 - np.float32(SHADOW_THICK - SHADOW_BIAS))).any(axis=0)
+        hid = zq < S2
+        hid &= zq > S2 - thick
+        if near_lamp:
+            hid &= dist > np.float32(1.5) * t
+        shadow |= hid.any(axis=0)
     dark = idx[shadow]
     if dark.size == 0:
         return vis

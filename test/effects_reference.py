@@ -1,0 +1,220 @@
+"""The effects' code as it was before their speed-ups (issue 20, goal 3), kept for the equivalence tests
+(``test_effects_equivalence``): the lamps' shadow test (:mod:`uw_sil.sim.effects.artificial_light` at bc1afe9,
+verbatim but for the constants it imports). Slow on purpose; not used by the package."""
+import math
+from typing import Optional
+
+import cv2
+import numpy as np
+
+from uw_sil.sim.effects.artificial_light import SHADOW_BIAS, SHADOW_CHUNK, SHADOW_PX, SHADOW_T, SHADOW_THICK
+
+
+def _shadow_grid(geom, planes=None) -> dict:
+    """What the screen-space shadow test needs, on ``geom.fine`` where there is one: depth map (inf where
+    nothing is hit; ``zfin``: 1e6 m there), hit mask, surface points as planes (``planes``: those of ``geom`` where
+    already split), part ids, intrinsics, the block size ``sub`` and the hit pixels per block (``hit_blocks``),
+    ``floor``: the seafloor's pixels or None, ``bands``: the hit pixels grouped by depth (:func:`_depth_bands`), and
+    ``cand``: the points the test keeps for each set of parallax radii, filled as lamps are tested (they depend on
+    the lamp only through the radii, so the candidates of a fit share them)."""
+    g = geom.fine if geom.fine is not None else geom
+    cam = g.camera
+    if g is not geom or planes is None:
+        planes = [np.ascontiguousarray(g.X[..., k]) for k in range(3)]
+    f = g.shape[0] // geom.shape[0]
+    h, w = g.shape[0] // f, g.shape[1] // f
+    zfin = np.where(g.hit, g.depth, np.float32(1e6)).astype(np.float32)
+    floor = g.hit & (g.labels == 2)
+    floor = floor if floor.any() else None
+    return {"z": np.where(g.hit, g.depth, np.float32(np.inf)).astype(np.float32), "hit": g.hit, "X": planes,
+            "zfin": zfin, "floor": floor,
+            # what can hide a point of the seafloor: anything but the seafloor (1e6 m there)
+            "zsolid": None if floor is None else np.where(floor, np.float32(1e6), zfin),
+            "parts": np.ascontiguousarray(g.part_ids), "K": tuple(float(v) for v in (cam.fx, cam.fy, cam.cx, cam.cy)),
+            "sub": f, "hit_blocks": g.hit.reshape(h, f, w, f).sum(axis=(1, 3), dtype=np.float32), "cand": {},
+            "blocks": {}, "bands": _depth_bands(g.depth, g.hit, floor)}
+
+
+#: Ratio of the depth bands' edges of the shadow test's pruning (:func:`_depth_bands`).
+BAND_RATIO = 1.25
+
+
+def _depth_bands(z: np.ndarray, hit: np.ndarray, floor) -> list:
+    """The hit pixels grouped by depth for the shadow test's pruning: bands ``[z0 q^k, z0 q^(k+1))`` from the nearest
+    depth ``z0`` (``q`` = :data:`BAND_RATIO`), each as ``(nearest depth in the band, flat indices, their depth less
+    the bias, on the seafloor)``; the points of a band use the parallax radius of its nearest depth
+    (:func:`_candidates`)."""
+    idx = np.flatnonzero(hit)
+    if idx.size == 0:
+        return []
+    zs = z.ravel()[idx]
+    z0 = float(zs.min())
+    k = np.floor(np.log(np.maximum(zs / np.float32(z0), 1)) / math.log(BAND_RATIO)).astype(np.int32)
+    order = np.argsort(k, kind="stable")
+    k, idx = k[order], idx[order]
+    cuts = np.flatnonzero(np.diff(k)) + 1
+    bands = []
+    for part in np.split(np.arange(idx.size), cuts):
+        i = idx[part]
+        bands.append((float(z.ravel()[i].min()), i, z.ravel()[i] - np.float32(SHADOW_BIAS),
+                      None if floor is None else floor.ravel()[i]))
+    return bands
+
+
+#: Block size of the shadow test's pruning erosion for large radii (:func:`_nearest_within`).
+PRUNE_BLOCK = 4
+
+
+def _block_min(z: np.ndarray) -> np.ndarray:
+    """The minimum of ``z`` over :data:`PRUNE_BLOCK`-pixel blocks (1e6 beyond the image)."""
+    h, w = z.shape
+    f = PRUNE_BLOCK
+    hb, wb = -(-h // f), -(-w // f)
+    pad = np.full((hb * f, wb * f), np.float32(1e6), np.float32)
+    pad[:h, :w] = z
+    return pad.reshape(hb, f, wb, f).min(axis=(1, 3))
+
+
+def _nearest_within(z: np.ndarray, r: int, blocks: Optional[np.ndarray] = None) -> tuple:
+    """At most the smallest ``z`` within ``r`` pixels (a square window), a lower bound that the shadow test's pruning
+    can use as well as the exact minimum (it can only keep more points to test), as ``(map, f)``: pixel ``(v, u)``
+    reads ``map[v // f, u // f]``. Radii up to two blocks: the exact minimum (``f`` 1). Above: the minimum over
+    :data:`PRUNE_BLOCK`-pixel blocks (``blocks``: :func:`_block_min` of ``z``, where already made), eroded over
+    ``ceil(r / block)`` blocks (which covers every pixel within ``r`` of any pixel of a block); 16x fewer pixels to
+    erode."""
+    f = PRUNE_BLOCK
+    if r <= 2 * f:
+        return cv2.erode(z, cv2.getStructuringElement(cv2.MORPH_RECT, (2 * r + 1, 2 * r + 1)),
+                         borderType=cv2.BORDER_CONSTANT, borderValue=1e6), 1
+    rb = -(-r // f)
+    return cv2.erode(_block_min(z) if blocks is None else blocks,
+                     cv2.getStructuringElement(cv2.MORPH_RECT, (2 * rb + 1, 2 * rb + 1)),
+                     borderType=cv2.BORDER_CONSTANT, borderValue=1e6), f
+
+
+def _parallax_radius(g: dict, lxy: float, z: float) -> int:
+    """How far (pixels) from a point at depth ``z`` or deeper the samples of its way to a lamp ``lxy`` from the
+    optical axis can project (:func:`_visibility_on`), the image's size where the samples reach the camera."""
+    h, w = g["z"].shape
+    tmax = float(SHADOW_T[-1])
+    gap = z - tmax
+    r = max(h, w) if gap <= 0.05 else int(math.ceil(max(g["K"][0], g["K"][1]) * lxy * tmax / (z * gap))) + 2
+    return min(r, max(h, w))
+
+
+def _candidates(g: dict, radii: tuple) -> np.ndarray:
+    """Flat indices, ascending, of the points that can be in shadow (:func:`_visibility_on`): those of each depth band
+    (``g["bands"]``) with a pixel at least the bias nearer than themselves within the band's radius (``radii``); for
+    points of the seafloor a pixel of something else."""
+    w = g["z"].shape[1]
+    maps = {}
+    keep = []
+    for (_, i, zb, on_floor), r in zip(g["bands"], radii):
+        rows, cols = i // w, i % w
+
+        def near(kind):
+            got = maps.get((kind, r))
+            if got is None:
+                if kind not in g["blocks"]:
+                    g["blocks"][kind] = _block_min(g[kind])
+                got = maps[kind, r] = _nearest_within(g[kind], r, g["blocks"][kind])
+            m, f = got
+            return m[rows // f, cols // f]
+
+        ok = near("zfin") < zb
+        if on_floor is not None and on_floor.any():
+            ok = np.where(on_floor, near("zsolid") < zb, ok)
+        keep.append(i[ok])
+    return np.sort(np.concatenate(keep)) if keep else np.zeros(0, np.int64)
+
+
+def _visibility_on(g: dict, L: np.ndarray, prune: bool = True) -> np.ndarray:
+    """The shadow test of the module's docstring on one grid (:func:`_shadow_grid`): (H, W) share of the lamp at
+    ``L`` seen from each surface point, 1 where nothing is hit.
+
+    Only points that can be in shadow are tested: a point ``X`` at depth ``z`` is shadowed by a surface seen where
+    a sample ``t`` along its way to the lamp projects, at least the bias nearer than ``X``; with the lamp in the
+    camera's plane (``L_z = 0``) a sample ``d`` nearer than ``X`` projects ``fx |L_xy| d / (z (z - d))`` pixels
+    from it, and ``d <= t <= max(SHADOW_T)``, so a point with no pixel at least the bias nearer within that
+    radius is lit. The radius falls with ``z``: each band of depths (:func:`_depth_bands`) takes it at its nearest
+    depth. The pruning drops only points the test would find lit (``prune=False`` tests every point, for the test
+    that checks this).
+
+    A point of the seafloor is not hidden by the seafloor: with the lamp on the camera's side of that plane the
+    segment to the lamp stays on that side, and with the lamp below it the floor gets none of the lamp's light
+    (Lambert). Its samples are compared with the depth of everything else (the panel, 1e6 m on the floor),
+    which also leaves out what rounding to whole pixels would make of the plane at grazing angles."""
+    z, hit, X = g["z"], g["hit"], g["X"]
+    h, w = z.shape
+    fx, fy, cx, cy = g["K"]
+    vis = np.ones((h, w), np.float32)
+    if not hit.any():
+        return vis
+    lxy = math.hypot(float(L[0]), float(L[1])) + abs(float(L[2]))     # (L_z: lamps ahead or behind the camera)
+    if prune:
+        radii = tuple(_parallax_radius(g, lxy, z_lo) for z_lo, *_ in g["bands"])
+        memo = g["cand"]            # kept per set of radii (at most 16: 5 MB per 640x480 frame)
+        idx = memo.get(radii)
+        if idx is None:
+            if len(memo) >= 16:
+                memo.clear()
+            idx = memo[radii] = _candidates(g, radii)
+    else:
+        idx = np.flatnonzero(hit)
+    if idx.size == 0:
+        return vis
+    Xc = [X[k].ravel()[idx] for k in range(3)]
+    D = [np.float32(L[k]) - Xc[k] for k in range(3)]
+    dist = np.sqrt(D[0] * D[0] + D[1] * D[1] + D[2] * D[2])
+    inv = np.float32(1.0) / np.maximum(dist, np.float32(1e-6))
+    for k in range(3):
+        D[k] *= inv
+    # the depth each point's samples are compared with: a point of the seafloor cannot be hidden by the seafloor
+    # (a plane with the lamp on the camera's side; with the lamp below it the floor gets none of its light), so
+    # it looks up the depth of what else there is (the second half of ``zz``)
+    if g["floor"] is None:
+        zz, base = g["zfin"].ravel(), 0
+    else:
+        zz = np.concatenate([g["zfin"].ravel(), g["zsolid"].ravel()])
+        base = g["floor"].ravel()[idx] * np.int64(h * w)
+    shadow = np.zeros(idx.size, bool)
+    # the samples along the way to the lamp as rows of one array (a few thousand points: one numpy call per
+    # operation for all samples instead of one per sample; the same float32 arithmetic), in chunks of rows
+    rows = max(1, min(len(SHADOW_T), SHADOW_CHUNK // idx.size))
+    for s in range(0, len(SHADOW_T), rows):
+        t = SHADOW_T[s:s + rows, None]
+        S2 = np.maximum(Xc[2] + t * D[2], np.float32(1e-3))
+        u = np.rint((Xc[0] + t * D[0]) / S2 * np.float32(fx) + np.float32(cx))
+        v = np.rint((Xc[1] + t * D[1]) / S2 * np.float32(fy) + np.float32(cy))
+        ok = (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1) & (dist > np.float32(1.5) * t)
+        # outside the image, or the lamp itself: no shadow; water reads as far away (1e6 m)
+        zq = zz[np.where(ok, v * w + u, 0).astype(np.int64) + base]
+        zq += np.float32(SHADOW_BIAS)
+        zq += S2 * np.float32(SHADOW_PX / fx)
+        shadow |= (ok & (zq < S2) & (zq > S2 - np.float32(SHADOW_THICK - SHADOW_BIAS))).any(axis=0)
+    dark = idx[shadow]
+    if dark.size == 0:
+        return vis
+    vis.ravel()[dark] = 0.0
+    # soft edges: the mean over the 3x3 pixels of the same surface part, in the box around the shadows
+    # (the box's outer ring only feeds the pixels next to it; the image's border pads as another part)
+    rows, cols = dark // w, dark % w
+    r0, r1 = max(int(rows.min()) - 2, 0), min(int(rows.max()) + 3, h)
+    c0, c1 = max(int(cols.min()) - 2, 0), min(int(cols.max()) + 3, w)
+    bh, bw = r1 - r0, c1 - c0
+    parts = g["parts"][r0:r1, c0:c1]
+    hb = hit[r0:r1, c0:c1]
+    num = np.zeros((bh, bw), np.float32)
+    den = np.zeros((bh, bw), np.float32)
+    pv = np.pad(vis[r0:r1, c0:c1], 1)
+    pp = np.pad(parts, 1)
+    for dv in (0, 1, 2):
+        for du in (0, 1, 2):
+            same = (pp[dv:dv + bh, du:du + bw] == parts) & hb
+            num += np.where(same, pv[dv:dv + bh, du:du + bw], np.float32(0))
+            den += same
+    soft = np.where(hb, num / np.maximum(den, 1), np.float32(1.0))
+    i0, i1 = (1 if r0 > 0 else 0), bh - (1 if r1 < h else 0)
+    j0, j1 = (1 if c0 > 0 else 0), bw - (1 if c1 < w else 0)
+    vis[r0 + i0:r0 + i1, c0 + j0:c0 + j1] = soft[i0:i1, j0:j1]
+    return vis

@@ -1,0 +1,57 @@
+"""The effects' faster code computes what their code before the speed-ups computed (issue 20, goal 3): the same
+effect functions fit effect parameters to real frames, so a change of their output would change fitted values. The
+code before is kept in ``effects_reference`` (test-only); each test compares on frames near and far, turned and
+pitched, with a seafloor, and lamps beside, above, below and at an angle."""
+import os
+
+import numpy as np
+import pytest
+
+os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
+
+import effects_reference as ref                     # noqa: E402  (test/: the code before the speed-ups)
+from uw_sil.sim.camera import CameraModel           # noqa: E402
+from uw_sil.sim.effects import get_effect           # noqa: E402
+from uw_sil.sim.model import Geometry               # noqa: E402
+from uw_sil.sim.render import Renderer              # noqa: E402
+from uw_sil.sim.scene import facing_pose            # noqa: E402
+
+#: close range, turned, pitched, far (m, yaw, pitch)
+POSES = ((1.1, 0.0, 0.0), (1.6, 0.25, -0.08), (2.5, -0.12, 0.1), (3.8, 0.05, -0.06))
+#: lamp positions (camera frame): the strong preset's pair, above, below, far to the side, ahead of the camera
+LAMPS = ((0.6, -0.3, 0.0), (-0.6, -0.3, 0.0), (0.0, -0.5, 0.1), (0.35, 0.2, 0.0), (1.5, 0.8, 0.0), (-0.3, 0.6, 0.0))
+
+
+@pytest.fixture(scope="module")
+def geoms():
+    """The approach's views at 320x240, each without and with the strong seafloor."""
+    cam = CameraModel.from_fov(320, 240)
+    r = Renderer(camera=cam)
+    try:
+        out = []
+        for d, yaw, pitch in POSES:
+            T = facing_pose(d, yaw=yaw, pitch=pitch)
+            out.append(Geometry.from_render(r.render(T), cam, T))
+    finally:
+        r.close()
+    ug = get_effect("unmodeled_geometry")
+    return out + [ug.add_floor(g, ug.severity("strong")) for g in out]
+
+
+def test_the_shadow_test_is_the_one_before_bit_for_bit(geoms):
+    """The pruning's block minima, band indices and the test's padded depth frame give the same candidate points
+    and the same visibility as the code before, for every lamp on every view."""
+    from uw_sil.sim.effects import artificial_light as al
+
+    shadowed = 0
+    for g in geoms:
+        new, old = al._shadow_grid(g), ref._shadow_grid(g)
+        np.testing.assert_array_equal(al._block_min(new["zfin"]), ref._block_min(old["zfin"]))
+        for L in LAMPS:
+            L = np.asarray(L, np.float32)
+            vis = al._visibility_on(new, L)
+            np.testing.assert_array_equal(vis, ref._visibility_on(old, L))
+            shadowed += int((vis < 1).sum())
+        for (radii, idx) in old["cand"].items():
+            np.testing.assert_array_equal(new["cand"][radii], idx)
+    assert shadowed > 1000                                   # the comparison saw shadows
