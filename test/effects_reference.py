@@ -1,6 +1,7 @@
 """The effects' code as it was before their speed-ups (issue 20, goal 3), kept for the equivalence tests
 (``test_effects_equivalence``): the lamps' shadow test (:mod:`uw_sil.sim.effects.artificial_light` at bc1afe9,
-verbatim but for the constants it imports). Slow on purpose; not used by the package."""
+verbatim but for the constants it imports) and forward scatter's blur (:mod:`uw_sil.sim.effects.forward_scatter`
+at bc1afe9, its method as a function). Slow on purpose; not used by the package."""
 import math
 from typing import Optional
 
@@ -218,3 +219,62 @@ def _visibility_on(g: dict, L: np.ndarray, prune: bool = True) -> np.ndarray:
     j0, j1 = (1 if c0 > 0 else 0), bw - (1 if c1 < w else 0)
     vis[r0 + i0:r0 + i1, c0 + j0:c0 + j1] = soft[i0:i1, j0:j1]
     return vis
+
+
+# ---------------------------------------------------------------------------- forward scatter (bc1afe9)
+
+SIGMA0 = 0.5
+
+
+def _blur_plane(x: np.ndarray, sigma: float, out=None) -> np.ndarray:
+    if sigma <= 3.0:
+        return cv2.GaussianBlur(x, (0, 0), sigma, dst=out, borderType=cv2.BORDER_REFLECT)
+    h, w = x.shape
+    f = int(sigma // 1.5)
+    small = cv2.resize(x, (max(1, w // f), max(1, h // f)), interpolation=cv2.INTER_AREA)
+    s = float(np.sqrt(max(sigma * sigma - 0.35 * f * f, 0.25 * f * f))) / f
+    small = cv2.GaussianBlur(small, (0, 0), s, borderType=cv2.BORDER_REFLECT)
+    return cv2.resize(small, (w, h), dst=out, interpolation=cv2.INTER_LINEAR)
+
+
+def _fs_pos(sigma):
+    lin = sigma / np.float32(SIGMA0)
+    with np.errstate(divide="ignore"):
+        lg = 1 + np.log2(np.maximum(lin, 1e-6))
+    return np.where(lin < 1, lin, lg).astype(np.float32)
+
+
+def _fs_index(pos, n: int) -> tuple:
+    j = np.clip(np.floor(pos).astype(np.intp), 0, n - 1)
+    f = np.clip(pos - j, 0, 1).astype(np.float32)
+    flat = np.arange(j.size, dtype=np.intp).reshape(j.shape)
+    return j * j.size + flat, np.minimum(j + 1, n - 1) * j.size + flat, f
+
+
+def _fs_interp(levels, at):
+    lo_i, hi_i, f = at
+    lo = levels.ravel()[lo_i]
+    return lo + f * (levels.ravel()[hi_i] - lo)
+
+
+def forward_scatter(D: np.ndarray, r_eff: np.ndarray, fx: float, values: dict) -> None:
+    """``ForwardScatter.apply`` on the direct signal ``D`` (3, H, W), in place, with the state ``(r_eff, fx)``."""
+    s = 1 - np.exp(-np.float32(values["strength"]) * r_eff)
+    sigma = np.float32(fx * values["width"] * 1e-3) * r_eff
+    tail = float(values["tail"])
+    pos = _fs_pos(sigma)
+    pos_t = _fs_pos(4 * sigma)
+    top = int(np.ceil(max(pos.max(), pos_t.max() if tail > 0 else 0)))
+    at = _fs_index(pos, top + 1)
+    at_t = _fs_index(pos_t, top + 1) if tail > 0 else None
+    blurred = np.empty_like(D)
+    levels = np.empty((top + 1,) + D.shape[1:], D.dtype)
+    for c in range(3):
+        levels[0] = D[c]
+        for k in range(1, top + 1):
+            _blur_plane(D[c], SIGMA0 * 2 ** (k - 1), out=levels[k])
+        acc = _fs_interp(levels, at)
+        if tail > 0:
+            acc = (1 - tail) * acc + tail * _fs_interp(levels, at_t)
+        blurred[c] = acc
+    D += s[None] * (blurred - D)

@@ -55,3 +55,22 @@ def test_the_shadow_test_is_the_one_before_bit_for_bit(geoms):
         for (radii, idx) in old["cand"].items():
             np.testing.assert_array_equal(new["cand"][radii], idx)
     assert shadowed > 1000                                   # the comparison saw shadows
+
+
+@pytest.mark.parametrize("severity", ["mild", "strong", {"strength": 1.5, "width": 40.0, "tail": 0.0},
+                                      {"strength": 0.3, "width": 0.5, "tail": 1.0}])
+def test_forward_scatter_is_the_blur_before(geoms, severity):
+    """Forward scatter's levels from the lowest one a pixel takes, the wide ones made for the three channels at once
+    with box means from the image's integral where the size does not divide: within 1e-6 of the code before (2e-7
+    measured at 640x480) on every view, for the presets, the widest PSF without a tail and the narrowest with one."""
+    fs = get_effect("forward_scatter")
+    values = fs.values(severity)
+    for g in geoms:
+        r_eff, fx = fs.prepare(g, g.camera)
+        D = np.ascontiguousarray(np.moveaxis(g.rgb, 2, 0)) * np.float32(0.8)
+        want = D.copy()
+        ref.forward_scatter(want, r_eff, fx, values)
+        terms = type("Terms", (), {})()
+        terms.state, terms.D = {fs.name: (r_eff, fx)}, D
+        fs.apply(terms, values, None)
+        assert np.abs(D - want).max() <= 1e-6

@@ -38,6 +38,59 @@ def _blur_plane(x: np.ndarray, sigma: float, out=None) -> np.ndarray:
     return cv2.resize(small, (w, h), dst=out, interpolation=cv2.INTER_LINEAR)
 
 
+def _area_mean(ii: np.ndarray, hs: int, ws: int) -> np.ndarray:
+    """``cv2.resize(x, (ws, hs), interpolation=INTER_AREA)`` of a (H, W, C) image ``x`` from its integral
+    ``ii = cv2.integral(x, sdepth=CV_64F)``: the mean of ``x`` over each output pixel's box, whose edges fall between
+    pixels when H / hs or W / ws is not whole (the integral is linear in between). OpenCV's own path for such
+    ratios costs 1.2 ms per 640x480 image, this one 0.1-0.5 ms for the wide levels; the two agree to 5e-7."""
+    h, w = ii.shape[0] - 1, ii.shape[1] - 1
+    sx, sy = w / ws, h / hs
+
+    def edges(n: int, step: float, size: int):
+        e = np.arange(n + 1) * step
+        i0 = np.minimum(np.floor(e).astype(np.intp), size - 1)
+        return i0, e - i0
+
+    x0, fx = edges(ws, sx, w)
+    y0, fy = edges(hs, sy, h)
+    cx = ii[:, x0] * (1 - fx)[None, :, None] + ii[:, x0 + 1] * fx[None, :, None]
+    c = cx[y0] * (1 - fy)[:, None, None] + cx[y0 + 1] * fy[:, None, None]
+    box = c[1:, 1:] - c[:-1, 1:] - c[1:, :-1] + c[:-1, :-1]
+    return (box * (1.0 / (sx * sy))).astype(np.float32)
+
+
+def _blur_small(img: np.ndarray, sigma: float, integral: list) -> np.ndarray:
+    """The downsampled blur of :func:`_blur_plane` for a sigma above 3 px, of a (H, W, C) image (the channels at
+    once), before its resize back: the box means through the image's integral (``integral``: a list of one item,
+    made on first use) where the size does not divide."""
+    h, w = img.shape[:2]
+    f = int(sigma // 1.5)
+    hs, ws = max(1, h // f), max(1, w // f)
+    if h % hs == 0 and w % ws == 0:
+        small = cv2.resize(img, (ws, hs), interpolation=cv2.INTER_AREA)
+    else:
+        if integral[0] is None:
+            integral[0] = cv2.integral(img, sdepth=cv2.CV_64F)
+        small = _area_mean(integral[0], hs, ws)
+    s = float(np.sqrt(max(sigma * sigma - 0.35 * f * f, 0.25 * f * f))) / f
+    return cv2.GaussianBlur(small, (0, 0), s, borderType=cv2.BORDER_REFLECT)
+
+
+_flat: dict = {}
+
+
+def _flat_index(shape: tuple) -> np.ndarray:
+    """``arange(H * W).reshape(H, W)`` (intp, read-only), made once per image size."""
+    a = _flat.get(shape)
+    if a is None:
+        a = np.arange(shape[0] * shape[1], dtype=np.intp).reshape(shape)
+        a.setflags(write=False)
+        if len(_flat) > 8:
+            _flat.clear()
+        _flat[shape] = a
+    return a
+
+
 def range_for_blur(geom) -> np.ndarray:
     """Per-pixel range for the blur weights: the range on objects, a smooth fill-in from nearby objects
     on water pixels (normalized Gaussian convolution), the mean object range where none is near."""
@@ -83,15 +136,30 @@ class ForwardScatter(Effect):
         tail = float(values["tail"])
         pos = self._pos(sigma)
         pos_t = self._pos(4 * sigma)
-        top = int(np.ceil(max(pos.max(), pos_t.max() if tail > 0 else 0)))
-        at = self._index(pos, top + 1)                       # the same for every channel
-        at_t = self._index(pos_t, top + 1) if tail > 0 else None
+        n = int(np.ceil(max(pos.max(), pos_t.max() if tail > 0 else 0))) + 1
+        # only the levels from the lowest one a pixel takes are made (at 640x480 with the strong preset, 5-14 of 0-14)
+        k0 = int(min(max(np.floor(min(pos.min(), pos_t.min() if tail > 0 else np.inf)), 0), n - 1))
+        at = self._index(pos, n, k0)                        # the same for every channel
+        at_t = self._index(pos_t, n, k0) if tail > 0 else None
+        # the wide levels' downsampled blurs of the three channels at once (OpenCV's filters on interleaved channels
+        # are 1.5-2.5x faster than three planes), each resized back per channel
+        wide = [k for k in range(k0, n) if SIGMA0 * 2 ** (k - 1) > 3.0]
+        small = {}
+        if wide:
+            img = cv2.merge([D[0], D[1], D[2]])
+            integral = [None]
+            small = {k: cv2.split(_blur_small(img, SIGMA0 * 2 ** (k - 1), integral)) for k in wide}
+        h, w = D.shape[1:]
         blurred = np.empty_like(D)
-        levels = np.empty((top + 1,) + D.shape[1:], D.dtype)
+        levels = np.empty((n - k0,) + D.shape[1:], D.dtype)
         for c in range(3):
-            levels[0] = D[c]
-            for k in range(1, top + 1):
-                _blur_plane(D[c], SIGMA0 * 2 ** (k - 1), out=levels[k])
+            for k in range(k0, n):
+                if k == 0:
+                    levels[0] = D[c]
+                elif k in small:
+                    cv2.resize(small[k][c], (w, h), dst=levels[k - k0], interpolation=cv2.INTER_LINEAR)
+                else:
+                    _blur_plane(D[c], SIGMA0 * 2 ** (k - 1), out=levels[k - k0])
             acc = self._interp(levels, at)
             if tail > 0:
                 acc = (1 - tail) * acc + tail * self._interp(levels, at_t)
@@ -107,13 +175,22 @@ class ForwardScatter(Effect):
         return np.where(lin < 1, lin, lg).astype(np.float32)
 
     @staticmethod
-    def _index(pos, n: int) -> tuple:
-        """Per pixel: the flat indices of the two levels (of ``n``) around a fractional level and the weight
-        of the upper one."""
-        j = np.clip(np.floor(pos).astype(np.intp), 0, n - 1)
-        f = np.clip(pos - j, 0, 1).astype(np.float32)
-        flat = np.arange(j.size, dtype=np.intp).reshape(j.shape)
-        return j * j.size + flat, np.minimum(j + 1, n - 1) * j.size + flat, f
+    def _index(pos, n: int, k0: int = 0) -> tuple:
+        """Per pixel: the flat indices of the two levels (of ``n``) around a fractional level in a stack of the levels
+        from ``k0`` on (no pixel's below it), and the weight of the upper one. (The level and its weight in float32:
+        ``pos - floor(pos)`` is exact, as it was in float64.)"""
+        j = np.floor(pos)
+        np.clip(j, 0, n - 1, out=j)
+        f = pos - j
+        np.clip(f, 0, 1, out=f)
+        size = j.size
+        lo = j.astype(np.intp)
+        lo -= k0
+        lo *= size
+        lo += _flat_index(j.shape)
+        hi = lo + size
+        np.copyto(hi, lo, where=j >= n - 1)
+        return lo, hi, f
 
     @staticmethod
     def _interp(levels, at):
