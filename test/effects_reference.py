@@ -1,7 +1,9 @@
 """The effects' code as it was before their speed-ups (issue 20, goal 3), kept for the equivalence tests
 (``test_effects_equivalence``): the lamps' shadow test (:mod:`uw_sil.sim.effects.artificial_light` at bc1afe9,
 verbatim but for the constants it imports) and forward scatter's blur (:mod:`uw_sil.sim.effects.forward_scatter`
-at bc1afe9, its method as a function). Slow on purpose; not used by the package."""
+at bc1afe9, its method as a function) and the seafloor (:class:`OldFloor`). Slow on purpose; not used by the
+package."""
+import functools
 import math
 from typing import Optional
 
@@ -9,6 +11,8 @@ import cv2
 import numpy as np
 
 from uw_sil.sim.effects.artificial_light import SHADOW_BIAS, SHADOW_CHUNK, SHADOW_PX, SHADOW_T, SHADOW_THICK
+from uw_sil.sim.effects.unmodeled_geometry import (SHADE_AMBIENT, TEX_SIZE, TILE, Z_FAR, UnmodeledGeometry, _sample,
+                                                   _texture_mean, _texture_mips)
 
 
 def _shadow_grid(geom, planes=None) -> dict:
@@ -278,3 +282,91 @@ def forward_scatter(D: np.ndarray, r_eff: np.ndarray, fx: float, values: dict) -
             acc = (1 - tail) * acc + tail * _fs_interp(levels, at_t)
         blurred[c] = acc
     D += s[None] * (blurred - D)
+
+
+# ---------------------------------------------------------------------------- the seafloor (bc1afe9)
+
+
+class OldFloor(UnmodeledGeometry):
+    """The seafloor effect with the ``add_floor`` of bc1afe9."""
+
+    def add_floor(self, geom, values, colour: bool = True):
+        """``geom`` with the floor in it; ``colour`` False: its shape only (depth, range, labels, parts, points,
+        normals; the colour as it was), as the finer view of a reduced frame needs it (the lamps' shadow test), made
+        when that view is first read."""
+        if geom.pose is None:
+            raise ValueError("unmodeled_geometry needs the camera pose T_cam_panel (pass pose=...)")
+        T = geom.pose
+        R, t = T[:3, :3], T[:3, 3]
+        tilt = values["tilt"]
+        n_p = np.array([0.0, math.cos(tilt), math.sin(tilt)])
+        e1 = np.array([1.0, 0.0, 0.0])
+        e2 = np.array([0.0, -math.sin(tilt), math.cos(tilt)])
+        p0 = np.array([0.0, values["floor_y"], 0.0])
+        n_c = R @ n_p
+        p0_c = R @ p0 + t
+        num = float(n_c @ p0_c)                # < 0: the camera is above the floor
+        if num >= 0:
+            return geom
+        xt, yt = geom.xt, geom.yt
+        den = np.float32(n_c[0]) * xt + np.float32(n_c[1]) * yt + np.float32(n_c[2])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            z = np.where(den < 0, np.float32(num) / den, np.float32(np.inf)).astype(np.float32)
+        sel = (z > 0) & (z < Z_FAR) & (~geom.hit | (z < geom.depth))
+        if not sel.any():
+            return geom
+        zs = z[sel]
+        xs = np.broadcast_to(xt, geom.shape)[sel] * zs
+        ys = np.broadcast_to(yt, geom.shape)[sel] * zs
+        rng_m = np.sqrt(xs * xs + ys * ys + zs * zs)
+        rgb = geom.rgb
+        if colour:
+            # in-plane coordinates of the floor points: P = R^T (X - t), u = P.e1, v = P.e2 (per component:
+            # (M, 3) @ (3, 3) products with mixed dtypes are slow in numpy)
+            q1 = (R @ e1).astype(np.float32)
+            q2 = (R @ e2).astype(np.float32)
+            c1, c2 = np.float32(t @ (R @ e1)), np.float32(t @ (R @ e2))
+            tu = (xs * q1[0] + ys * q1[1] + zs * q1[2] - c1) * np.float32(1 / TILE)
+            tv = -(xs * q2[0] + ys * q2[1] + zs * q2[2] - c2) * np.float32(1 / TILE)
+            # mip level from the pixel footprint on the floor
+            n32 = n_c.astype(np.float32)
+            cos_inc = np.abs(xs * n32[0] + ys * n32[1] + zs * n32[2]) / np.maximum(rng_m, np.float32(1e-6))
+            foot = rng_m / (np.float32(geom.camera.fx) * np.maximum(cos_inc, np.float32(0.05)))   # m per pixel
+            mips = _texture_mips()
+            lev = np.clip(np.rint(np.log2(np.maximum(foot * np.float32(TEX_SIZE / TILE), 1))), 0, len(mips) - 1)
+            lev = lev.astype(np.int8)
+            col = np.empty((zs.size, 3), np.float32)
+            for L in range(len(mips)):
+                m = lev == L
+                if not m.any():
+                    continue
+                img = mips[L]
+                S = np.float32(img.shape[0] - 2)
+                mx = (tu[m] % 1) * S + np.float32(0.5)           # +1 for the wrap padding, -0.5 for pixel centres
+                my = (tv[m] % 1) * S + np.float32(0.5)
+                col[m] = _sample(img, mx, my)
+            shade = SHADE_AMBIENT + (1 - SHADE_AMBIENT) * max(0.0, -float(n_c[2]))
+            if values["contrast"] != 1:
+                mean = _texture_mean()
+                col = mean + np.float32(values["contrast"]) * (col - mean)
+            col = np.clip(col * np.float32(values["albedo"]), 0, 1) * np.float32(shade)
+
+            rgb = geom.rgb.copy()
+            rgb[sel] = col
+        depth = geom.depth.copy()
+        depth[sel] = zs
+        rng_arr = geom.range.copy()
+        rng_arr[sel] = rng_m
+        labels = geom.labels.copy()
+        labels[sel] = 2
+        part = geom.part_ids.astype(np.uint16, copy=True)
+        part[sel] = 0xFFFF
+        X = normals = None                     # the shape only: made from the depth when read
+        if colour:
+            zf = np.where(sel, z, np.float32(0))
+            X = np.where(sel[..., None], np.stack([xt * zf, yt * zf, zf], axis=-1), geom.X)
+            normals = np.where(sel[..., None], n_c.astype(np.float32), geom.normals)
+        # the finer view of a reduced frame (the lamps' shadows) gets the floor too, when it is read
+        fine = geom.finer_view_through(functools.partial(self.add_floor, values=dict(values), colour=False))
+        return geom.replace(rgb=rgb, depth=depth, range_m=rng_arr, labels=labels, part_ids=part, X=X,
+                            normals=normals, fine=fine)

@@ -100,3 +100,23 @@ def test_the_lamps_light_is_the_one_before_bit_for_bit(geoms, monkeypatch):
             st["on_hit"]["nX"] = np.einsum("hwk,hwk->hw", g.normals, g.X).ravel()[idx]
             for v, got in zip(rigs, new):
                 np.testing.assert_array_equal(got, lamp.illumination(st, al.LampRig(v), a))
+
+
+def test_the_seafloor_is_the_one_before_bit_for_bit(geoms):
+    """The seafloor by flat indices and its texture's levels by a sort: every array of the geometry it makes (colour,
+    depth, range, labels, parts, points, normals, and its finer view's shape) is the one before, for the presets, a
+    tilted floor of low contrast and one close below the panel, on every view."""
+    ug = get_effect("unmodeled_geometry")
+    old = ref.OldFloor()
+    cases = [ug.values("strong"), ug.values("mild"), ug.values({"floor_y": -0.5, "tilt": 0.25, "albedo": 0.4,
+                                                                "contrast": 0.3}),
+             ug.values({"floor_y": -0.36, "tilt": -0.3, "contrast": 1.5})]
+    for g in geoms[:len(POSES)]:
+        for v in cases:
+            a, b = ug.add_floor(g, v), old.add_floor(g, v)
+            for name in ("rgb", "depth", "range", "labels", "part_ids", "X", "normals", "hit"):
+                np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+            fine = g.replace(fine=g)       # a view with a finer one (here itself): the floor's shape added to it
+            a, b = ug.add_floor(fine, v).fine, old.add_floor(fine, v).fine
+            for name in ("depth", "range", "labels", "part_ids", "X"):
+                np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
