@@ -304,7 +304,7 @@ def main():
     ap.add_argument("--diagnose", action="store_true", help="the live diagnosis against uw-sil diagnose instead")
     ap.add_argument("--diagnose-frames", type=int, default=8, help="--diagnose: frames diagnosed (uw-sil diagnose "
                     "--frames)")
-    ap.add_argument("--max-effects", type=int, default=4, help="--diagnose: effects in the extended model at most")
+    ap.add_argument("--max-effects", type=int, default=4, help="--diagnose: effects the greedy selection adds at most")
     ap.add_argument("--effects", default="", help="--diagnose: candidate effects, comma-separated (default all)")
     ap.add_argument("--max-iter", type=int, default=0, help="--diagnose: CMA-ES budget (default the diagnosis' own)")
     args = ap.parse_args()

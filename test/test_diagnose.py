@@ -1118,6 +1118,23 @@ def test_values_held_at_their_nearest_possible_ones_stay_held_in_every_later_fit
     assert math.hypot(fp["artificial_light.offset_x"], fp["artificial_light.offset_y"]) == pytest.approx(1.0)
 
 
+def test_effects_judged_on_statistics_are_not_held_to_the_greedy_selections_cap(bags, monkeypatch):
+    """``max_effects`` bounds the greedy selection of the smooth effects; an effect new in every frame is one test
+    of its own statistic after it and is named on top (on a foreign four-effect trial strong sensor noise, accepted
+    at 3.3 margins once the selection had taken four effects, was dropped without a word). Planted: the lamps
+    trial with a cap of one, and a noise statistic that is always accepted."""
+    import uw_sil.fit.judges as jd
+    from uw_sil.fit.diagnose import diagnose_bag
+
+    noise = type(jd.JUDGES["sensor_noise"])
+    monkeypatch.setattr(noise, "accept", lambda self, r, current, margin, residual=None: (True, 5.0, "statistic"))
+    doc = diagnose_bag(bags["artificial_light"], k=6, effects_allowed=["artificial_light", "sensor_noise"],
+                       max_effects=1, processes=1).to_json()
+    assert [s["chosen"] for s in doc["selection"] if s["chosen"]] == ["artificial_light"], doc["selection"]
+    assert [v["effect"] for v in doc["verdict"]] == ["artificial_light", "sensor_noise"], doc["verdict"]
+    assert "sensor_noise" in doc["final"]["effects"]
+
+
 def test_a_theta_gain_is_not_taken_where_the_least_squares_fit_does_not_lower_the_residual():
     """θ's region histograms count pixels in bins: in a dark frame a brightness change far below the noise moves
     many across a bin edge (a foreign strong β_B≠β_D trial: a camera response at nearly its identity gained +0.0064

@@ -785,7 +785,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--params-out", help="ROS 2 parameters file for sim_camera with the extended model")
     g.add_argument("--node-name", default="/**")
     g.add_argument("--max-effects", type=int, default=4,
-                   help="effects in the final model at most (greedy forward selection stops there; default 4)")
+                   help="effects the greedy forward selection adds at most (default 4); the effects new in every "
+                        "frame (particles, noise, compression), judged on their statistics, come on top")
     g.add_argument("--fog", choices=["exp2", "exp", "none"], default="exp2")
     g.add_argument("--seed", type=int, default=0)
     g.add_argument("--processes", type=int, default=None,

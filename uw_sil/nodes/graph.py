@@ -423,7 +423,8 @@ BACKWARD_ARGS = (
              "(/diagnostics, /backward_fit/diagnosis) and re-parameterizes sim_camera with the extended model",
              bool, False),
     GraphArg("diagnose_frames", "with diagnose: frames diagnosed, spread over those received", int, minimum=3),
-    GraphArg("diagnose_max_effects", "with diagnose: effects in the extended model at most", int, minimum=1),
+    GraphArg("diagnose_max_effects", "with diagnose: effects the greedy selection adds at most (those judged on "
+             "statistics come on top)", int, minimum=1),
     GraphArg("diagnose_effects", "with diagnose: effects considered, comma-separated (default: every effect the "
              "diagnosis judges)"),
     GraphArg("output_json", "with diagnose: write the diagnosis JSON here (as uw-sil diagnose --json)", path=True),
