@@ -1,8 +1,8 @@
 """The effects' code as it was before their speed-ups (issue 20, goal 3), kept for the equivalence tests
 (``test_effects_equivalence``): the lamps' shadow test (:mod:`uw_sil.sim.effects.artificial_light` at bc1afe9,
 verbatim but for the constants it imports) and forward scatter's blur (:mod:`uw_sil.sim.effects.forward_scatter`
-at bc1afe9, its method as a function) and the seafloor (:class:`OldFloor`). Slow on purpose; not used by the
-package."""
+at bc1afe9, its method as a function), the seafloor (:class:`OldFloor`) and the render's normals from its depth
+(:func:`normals_from_depth`, :mod:`uw_sil.sim.model` at 2fcbd2c). Slow on purpose; not used by the package."""
 import functools
 import math
 from typing import Optional
@@ -13,6 +13,7 @@ import numpy as np
 from uw_sil.sim.effects.artificial_light import SHADOW_BIAS, SHADOW_CHUNK, SHADOW_PX, SHADOW_T, SHADOW_THICK
 from uw_sil.sim.effects.unmodeled_geometry import (SHADE_AMBIENT, TEX_SIZE, TILE, Z_FAR, UnmodeledGeometry, _sample,
                                                    _texture_mean, _texture_mips)
+from uw_sil.sim.normals import plane_terms
 
 
 def _shadow_grid(geom, planes=None) -> dict:
@@ -370,3 +371,17 @@ class OldFloor(UnmodeledGeometry):
         fine = geom.finer_view_through(functools.partial(self.add_floor, values=dict(values), colour=False))
         return geom.replace(rgb=rgb, depth=depth, range_m=rng_arr, labels=labels, part_ids=part, X=X,
                             normals=normals, fine=fine)
+
+
+def normals_from_depth(depth, part, hit, camera, xt, yt) -> np.ndarray:
+    """Unit normals towards the camera from planar depth (``uw_sil.sim.model._normals_from_depth`` at 2fcbd2c)."""
+    w = np.where(hit, np.float32(1.0) / np.where(hit, depth, np.float32(1.0)), np.float32(0.0))
+    part = np.where(hit, part, 0)
+    mx, my, mz = plane_terms(w, part, camera.fx, camera.fy, xt, yt)
+    norm = np.sqrt(mx * mx + my * my + mz * mz)
+    ok = hit & (norm > 0)
+    safe = np.where(ok, norm, np.float32(1.0))
+    n = np.stack([-mx / safe, -my / safe, -mz / safe], axis=-1)
+    n[~ok] = 0.0
+    n[hit & ~ok] = (0.0, 0.0, -1.0)              # isolated pixels face the camera
+    return n.astype(np.float32)

@@ -120,3 +120,24 @@ def test_the_seafloor_is_the_one_before_bit_for_bit(geoms):
             a, b = ug.add_floor(fine, v).fine, old.add_floor(fine, v).fine
             for name in ("depth", "range", "labels", "part_ids", "X"):
                 np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+
+
+def test_the_normals_are_the_ones_before_bit_for_bit(geoms):
+    """The render's normals written per component into one array (0 set on the (H, W) planes before the division)
+    are the normals before, bit for bit (the sign of zero too), on every view with and without the seafloor and on
+    one with isolated pixels and a pixel of a part of its own (which face the camera)."""
+    from uw_sil.sim.model import _normals_from_depth
+
+    g = geoms[0]
+    depth, parts = g.depth.copy(), g.part_ids.copy()
+    depth[5, 7] = depth[40, 41] = 1.3                   # isolated hits in the water around the panel
+    parts[5, 7] = parts[40, 41] = 1
+    ys, xs = np.nonzero(g.hit)
+    parts[ys[len(ys) // 2], xs[len(xs) // 2]] = 99      # one pixel of its own part on the panel
+    cases = [(x.depth, x.part_ids, x.hit) for x in geoms] + [(depth, parts, np.isfinite(depth))]
+    for depth, parts, hit in cases:
+        new = _normals_from_depth(depth, parts, hit, g.camera, g.xt, g.yt)
+        old = ref.normals_from_depth(depth, parts, hit, g.camera, g.xt, g.yt)
+        assert new.dtype == old.dtype and new.tobytes() == old.tobytes()
+    for y, x in ((5, 7), (40, 41), (ys[len(ys) // 2], xs[len(xs) // 2])):
+        assert tuple(new[y, x]) == (0.0, 0.0, -1.0)     # the isolated pixels were there

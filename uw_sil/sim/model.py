@@ -217,11 +217,17 @@ def _normals_from_depth(depth, part, hit, camera, xt, yt) -> np.ndarray:
     mx, my, mz = plane_terms(w, part, camera.fx, camera.fy, xt, yt)   # n / d for the plane n.X = d (n away from camera)
     norm = np.sqrt(mx * mx + my * my + mz * mz)
     ok = hit & (norm > 0)
+    bad = ~ok
     safe = np.where(ok, norm, np.float32(1.0))
-    n = np.stack([-mx / safe, -my / safe, -mz / safe], axis=-1)
-    n[~ok] = 0.0
-    n[hit & ~ok] = (0.0, 0.0, -1.0)              # isolated pixels face the camera
-    return n.astype(np.float32)
+    n = np.empty(depth.shape + (3,), np.float32)
+    for k, m in enumerate((mx, my, mz)):          # -m / |m| into each component's plane, +0 where not ok
+        np.negative(m, out=m)
+        np.copyto(m, np.float32(0.0), where=bad)  # (on the (H, W) planes: 0.5 ms; on the (H, W, 3) normals: 4)
+        np.divide(m, safe, out=n[..., k])
+    odd = hit & bad
+    if odd.any():
+        n[odd] = (0.0, 0.0, -1.0)                 # isolated pixels face the camera
+    return n
 
 
 # ============================================================================ effects as values
