@@ -1,8 +1,9 @@
 """The effects' code as it was before their speed-ups (issue 20, goal 3), kept for the equivalence tests
 (``test_effects_equivalence``): the lamps' shadow test (:mod:`uw_sil.sim.effects.artificial_light` at bc1afe9,
 verbatim but for the constants it imports) and forward scatter's blur (:mod:`uw_sil.sim.effects.forward_scatter`
-at bc1afe9, its method as a function), the seafloor (:class:`OldFloor`) and the render's normals from its depth
-(:func:`normals_from_depth`, :mod:`uw_sil.sim.model` at 2fcbd2c). Slow on purpose; not used by the package."""
+at bc1afe9, its method as a function), the seafloor (:class:`OldFloor`); at 2fcbd2c the render's normals from its depth
+(:func:`normals_from_depth`, :mod:`uw_sil.sim.model`) and the camera noise (:func:`sensor_noise`). Slow on purpose;
+not used by the package."""
 import functools
 import math
 from typing import Optional
@@ -385,3 +386,33 @@ def normals_from_depth(depth, part, hit, camera, xt, yt) -> np.ndarray:
     n[~ok] = 0.0
     n[hit & ~ok] = (0.0, 0.0, -1.0)              # isolated pixels face the camera
     return n.astype(np.float32)
+
+
+def correlated_normal(rng, shape, sigma_px: float) -> np.ndarray:
+    """``uw_sil.sim.effects.sensor_noise.correlated_normal`` at 2fcbd2c."""
+    from uw_sil.sim.effects.sensor_noise import white_normal
+
+    n = white_normal(rng, shape)
+    if sigma_px <= 0:
+        return n
+    k = cv2.getGaussianKernel(int(2 * np.ceil(4 * sigma_px) + 1), sigma_px, cv2.CV_32F).ravel()
+    scale = np.float32(1.0 / float((k * k).sum()))      # std of blurred white noise is sum(k^2) (separable)
+    out = np.empty(n.shape, np.float32)
+    for c in range(shape[0]):
+        out[c] = cv2.sepFilter2D(n[c], -1, k, k, borderType=cv2.BORDER_REFLECT) * scale
+    return out
+
+
+def sensor_noise(I: np.ndarray, values: dict, rng) -> None:
+    """The camera noise on the planar image ``I`` in place (``SensorNoiseEffect.apply`` at 2fcbd2c)."""
+    from uw_sil.sim.effects.sensor_noise import fixed_pattern
+
+    if values["fpn"] > 0:
+        I *= 1 + np.float32(values["fpn"]) * fixed_pattern(I.shape)
+    for kind in ("col", "row"):
+        if values[kind] > 0:
+            I += np.float32(values[kind] / 255.0) * fixed_pattern(I.shape, kind)
+    if rng is None or not (values["shot"] > 0 or values["read"] > 0):
+        return
+    var = np.clip(I, 0, 1) * np.float32(values["shot"] / 255.0) + np.float32((values["read"] / 255.0) ** 2)
+    I += np.sqrt(var) * correlated_normal(rng, I.shape, values["corr"])

@@ -68,7 +68,8 @@ def correlated_normal(rng, shape, sigma_px: float) -> np.ndarray:
     scale = np.float32(1.0 / float((k * k).sum()))      # std of blurred white noise is sum(k^2) (separable)
     out = np.empty(n.shape, np.float32)
     for c in range(shape[0]):
-        out[c] = cv2.sepFilter2D(n[c], -1, k, k, borderType=cv2.BORDER_REFLECT) * scale
+        cv2.sepFilter2D(n[c], -1, k, k, dst=out[c], borderType=cv2.BORDER_REFLECT)
+        out[c] *= scale
     return out
 
 
@@ -98,11 +99,17 @@ class SensorNoiseEffect(Effect):
     def apply(self, terms, values, rng):
         I = terms.I
         if values["fpn"] > 0:
-            I *= 1 + np.float32(values["fpn"]) * fixed_pattern(I.shape)
+            gain = np.multiply(fixed_pattern(I.shape), np.float32(values["fpn"]))
+            gain += np.float32(1.0)
+            I *= gain                                       # I * (1 + fpn P), in place
         for kind in ("col", "row"):
             if values[kind] > 0:
                 I += np.float32(values[kind] / 255.0) * fixed_pattern(I.shape, kind)
         if rng is None or not self.draws(values):
             return
-        var = np.clip(I, 0, 1) * np.float32(values["shot"] / 255.0) + np.float32((values["read"] / 255.0) ** 2)
-        I += np.sqrt(var) * correlated_normal(rng, I.shape, values["corr"])
+        sd = np.clip(I, 0, 1)                               # sqrt(shot I + read^2), in one buffer
+        sd *= np.float32(values["shot"] / 255.0)
+        sd += np.float32((values["read"] / 255.0) ** 2)
+        np.sqrt(sd, out=sd)
+        sd *= correlated_normal(rng, I.shape, values["corr"])
+        I += sd
