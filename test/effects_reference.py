@@ -2,8 +2,8 @@
 (``test_effects_equivalence``): the lamps' shadow test (:mod:`uw_sil.sim.effects.artificial_light` at bc1afe9,
 verbatim but for the constants it imports) and forward scatter's blur (:mod:`uw_sil.sim.effects.forward_scatter`
 at bc1afe9, its method as a function), the seafloor (:class:`OldFloor`); at 2fcbd2c the render's normals from its depth
-(:func:`normals_from_depth`, :mod:`uw_sil.sim.model`) and the camera noise (:func:`sensor_noise`). Slow on purpose;
-not used by the package."""
+(:func:`normals_from_depth`, :mod:`uw_sil.sim.model`), the camera noise (:func:`sensor_noise`) and the particles'
+blur (:class:`OldSnow`). Slow on purpose; not used by the package."""
 import functools
 import math
 from typing import Optional
@@ -12,6 +12,7 @@ import cv2
 import numpy as np
 
 from uw_sil.sim.effects.artificial_light import SHADOW_BIAS, SHADOW_CHUNK, SHADOW_PX, SHADOW_T, SHADOW_THICK
+from uw_sil.sim.effects.marine_snow import _SIGMA_BINS, Z_MAX, Z_MIN, MarineSnow, _draw, _lit, _placed
 from uw_sil.sim.effects.unmodeled_geometry import (SHADE_AMBIENT, TEX_SIZE, TILE, Z_FAR, UnmodeledGeometry, _sample,
                                                    _texture_mean, _texture_mips)
 from uw_sil.sim.normals import plane_terms
@@ -416,3 +417,55 @@ def sensor_noise(I: np.ndarray, values: dict, rng) -> None:
         return
     var = np.clip(I, 0, 1) * np.float32(values["shot"] / 255.0) + np.float32((values["read"] / 255.0) ** 2)
     I += np.sqrt(var) * correlated_normal(rng, I.shape, values["corr"])
+
+
+class OldSnow(MarineSnow):
+    """The marine snow effect with the ``particles`` of 2fcbd2c (every size class blurred over the whole image)."""
+
+    def particles(self, terms, values, rng):
+        cam = terms.camera
+        h, w = terms.shape
+        fx, fy, cx, cy = float(cam.fx), float(cam.fy), float(cam.cx), float(cam.cy)
+        volume = (Z_MAX ** 3 - Z_MIN ** 3) / 3.0 * (w / fx) * (h / fy)
+        lam = values["density"] * volume
+        # where the particles are, and the light on them, depend on the density, the seed and the scene, not on
+        # the particles' size or brightness: a fit of those (the diagnosis's grid) gets them from memory
+        state = _placed.state_key(rng)
+        u, v, z, logn = _placed.draw(rng, (lam, h, w), lambda g: _draw(g, lam, h, w))
+        if u.size == 0:
+            return None
+        depth = terms.geom.depth
+        a = terms.a.astype(float)
+        lamps = None if terms.lamps is None else terms.lamps.light_key
+        key = None if state is None else (state, lam, h, w, fx, fy, cx, cy, id(depth), a.tobytes(), lamps)
+        placed = _placed.value(key, lambda: _lit(terms, depth, a, u, v, z, (fx, fy, cx, cy)))
+        if placed is None:
+            return None
+        vis, lit, att = placed[:3]
+        u, v, z = u[vis], v[vis], z[vis]
+        diam = values["size"] * 1e-3 * logn[vis]
+        amp = values["brightness"] * lit * att                              # (M, 3) peak radiance
+        d_px = fx * diam / z
+        sigma = np.maximum(0.5, d_px / 2.8)
+        energy = amp * (np.pi / 4.0 * d_px * d_px)[:, None]                  # radiance x area (px^2)
+        k = np.clip(np.rint(np.log2(sigma / 0.5)).astype(np.int64), 0, len(_SIGMA_BINS) - 1)
+        out = np.zeros((3, h, w), np.float32)
+        x0 = np.floor(u).astype(np.int64)
+        y0 = np.floor(v).astype(np.int64)
+        fx_, fy_ = u - x0, v - y0
+        corners = ((0, 0, (1 - fx_) * (1 - fy_)), (1, 0, fx_ * (1 - fy_)), (0, 1, (1 - fx_) * fy_), (1, 1, fx_ * fy_))
+        for b in np.unique(k):
+            sel = np.nonzero(k == b)[0]
+            idx, wts, src = [], [], []
+            for dx, dy, wt in corners:                         # bilinear splat: four corners at once
+                xx, yy = x0[sel] + dx, y0[sel] + dy
+                ok = (xx >= 0) & (xx < w) & (yy >= 0) & (yy < h)
+                idx.append((yy * w + xx)[ok])
+                wts.append(wt[sel][ok])
+                src.append(sel[ok])
+            idx, wts, src = np.concatenate(idx), np.concatenate(wts), np.concatenate(src)
+            sb = float(_SIGMA_BINS[b])
+            for c in range(3):
+                plane = np.bincount(idx, weights=energy[src, c] * wts, minlength=h * w).astype(np.float32)
+                out[c] += cv2.GaussianBlur(plane.reshape(h, w), (0, 0), sb, borderType=cv2.BORDER_CONSTANT)
+        return out

@@ -161,3 +161,37 @@ def test_the_camera_noise_is_the_one_before_bit_for_bit(geoms, severity):
         terms.I = I
         sn.apply(terms, values, effect_rng(k, sn.name))
         assert terms.I is I and I.tobytes() == want.tobytes()
+
+
+def test_the_particles_are_the_ones_before_bit_for_bit(geoms, monkeypatch):
+    """Marine snow with its sparse size classes blurred on the tiles their particles reach (the rest of the image: 0)
+    is the snow before, bit for bit, in the model's image (lit by the lamps and by the camera's own lamp), at 320x240
+    and on 640x480 views, for the presets, the densest and the largest particles (the widest blur)."""
+    from uw_sil.sim.effects import marine_snow as ms
+    from uw_sil.sim.model import UnderwaterModel
+
+    cam = CameraModel.from_fov(640, 480)
+    r = Renderer(camera=cam)
+    try:
+        big = []
+        for d, yaw, pitch in POSES[1:3]:
+            T = facing_pose(d, yaw=yaw, pitch=pitch)
+            big.append(Geometry.from_render(r.render(T), cam, T))
+    finally:
+        r.close()
+    tiled = []
+    real = ms._tiles
+    monkeypatch.setattr(ms, "_tiles", lambda *a: tiled.append(real(*a)) or tiled[-1])
+    snow = [ms.MarineSnow().values(v) for v in ("mild", "strong")]
+    snow += [{"density": 3000.0, "brightness": 3.0, "size": 10.0}, {"density": 800.0, "brightness": 2.0, "size": 0.3}]
+    for g in geoms[:len(POSES)] + big:
+        for v in snow:
+            for lamps in (None, "strong"):
+                model = UnderwaterModel(effects={"marine_snow": v} | ({"artificial_light": lamps} if lamps else {}))
+                pm = model.prepare(g, g.camera, seed=7)
+                new = pm(model.params.as_vector(), model.effect_vector())
+                with monkeypatch.context() as m:
+                    m.setattr(ms.MarineSnow, "particles", ref.OldSnow.particles)
+                    old = model.prepare(g, g.camera, seed=7)(model.params.as_vector(), model.effect_vector())
+                assert new.tobytes() == old.tobytes()
+    assert sum(t is not None for t in tiled) >= 10            # the tiles were used

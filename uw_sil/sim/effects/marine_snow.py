@@ -144,7 +144,45 @@ class MarineSnow(Effect):
                 src.append(sel[ok])
             idx, wts, src = np.concatenate(idx), np.concatenate(wts), np.concatenate(src)
             sb = float(_SIGMA_BINS[b])
+            tiles = _tiles(idx, h, w, sb)
             for c in range(3):
                 plane = np.bincount(idx, weights=energy[src, c] * wts, minlength=h * w).astype(np.float32)
-                out[c] += cv2.GaussianBlur(plane.reshape(h, w), (0, 0), sb, borderType=cv2.BORDER_CONSTANT)
+                plane = plane.reshape(h, w)
+                if tiles is None:
+                    out[c] += cv2.GaussianBlur(plane, (0, 0), sb, borderType=cv2.BORDER_CONSTANT)
+                    continue
+                for (ty0, ty1, tx0, tx1), (wy0, wy1, wx0, wx1) in tiles:
+                    blob = cv2.GaussianBlur(plane[wy0:wy1, wx0:wx1], (0, 0), sb, borderType=cv2.BORDER_CONSTANT)
+                    out[c, ty0:ty1, tx0:tx1] += blob[ty0 - wy0:ty1 - wy0, tx0 - wx0:tx1 - wx0]
         return out
+
+
+#: Side of the tiles in which a size class of few particles is blurred (:func:`_tiles`), pixels.
+TILE = 64
+
+
+def _tiles(idx: np.ndarray, h: int, w: int, sigma: float):
+    """Where a size class of few particles (its splats' flat indices ``idx``) needs its blur of ``sigma`` px: the
+    :data:`TILE`-pixel tiles within the kernel's reach of a splat, each as ``((y0, y1, x0, x1), window)`` with the
+    window the tile and the kernel's reach around it, clipped to the image. Elsewhere the blur of the whole image
+    is 0 (+0: the kernel's taps there read zeros only), and on a tile the blur of its window is the whole image's
+    (BORDER_CONSTANT: zeros beyond the image either way; within the window the same taps read the same values).
+    None where the windows would cover more than a third of the image (the whole image is blurred then)."""
+    r = int(4 * sigma) + 2            # beyond OpenCV's reach of the kernel it makes for float32 (its radius ~4 sigma)
+    if r >= TILE or idx.size == 0 or 3 * TILE * TILE * idx.size >= 4 * h * w:
+        return None
+    ys, xs = np.divmod(idx, w)
+    ny, nx = -(-h // TILE), -(-w // TILE)
+    need = np.zeros((ny, nx), bool)
+    need[ys // TILE, xs // TILE] = True
+    if 3 * TILE * TILE * np.count_nonzero(need) >= h * w:      # the tiles of the splats alone: too many
+        return None
+    for yy in (np.maximum(ys - r, 0) // TILE, ys // TILE, np.minimum(ys + r, h - 1) // TILE):
+        for xx in (np.maximum(xs - r, 0) // TILE, xs // TILE, np.minimum(xs + r, w - 1) // TILE):
+            need[yy, xx] = True                   # (r < TILE: a splat's reach spans at most three tiles per axis)
+    tiles = []
+    for ty, tx in zip(*np.nonzero(need)):
+        y0, y1, x0, x1 = ty * TILE, min((ty + 1) * TILE, h), tx * TILE, min((tx + 1) * TILE, w)
+        tiles.append(((y0, y1, x0, x1), (max(y0 - r, 0), min(y1 + r, h), max(x0 - r, 0), min(x1 + r, w))))
+    area = sum((b[1] - b[0]) * (b[3] - b[2]) for _, b in tiles)
+    return tiles if 3 * area < h * w else None
