@@ -2,8 +2,8 @@
 (``test_effects_equivalence``): the lamps' shadow test (:mod:`uw_sil.sim.effects.artificial_light` at bc1afe9,
 verbatim but for the constants it imports) and forward scatter's blur (:mod:`uw_sil.sim.effects.forward_scatter`
 at bc1afe9, its method as a function), the seafloor (:class:`OldFloor`); at 2fcbd2c the render's normals from its depth
-(:func:`normals_from_depth`, :mod:`uw_sil.sim.model`), the camera noise (:func:`sensor_noise`) and the particles'
-blur (:class:`OldSnow`). Slow on purpose; not used by the package."""
+(:func:`normals_from_depth`, :mod:`uw_sil.sim.model`), the camera noise (:func:`sensor_noise`), the particles'
+blur (:class:`OldSnow`) and the lamps' irradiance (:class:`OldLamps`). Slow on purpose; not used by the package."""
 import functools
 import math
 from typing import Optional
@@ -11,7 +11,8 @@ from typing import Optional
 import cv2
 import numpy as np
 
-from uw_sil.sim.effects.artificial_light import SHADOW_BIAS, SHADOW_CHUNK, SHADOW_PX, SHADOW_T, SHADOW_THICK
+from uw_sil.sim.effects.artificial_light import (R0, SHADOW_BIAS, SHADOW_CHUNK, SHADOW_GRID, SHADOW_PX, SHADOW_T,
+                                                 SHADOW_THICK, ArtificialLight, LampRig)
 from uw_sil.sim.effects.marine_snow import _SIGMA_BINS, Z_MAX, Z_MIN, MarineSnow, _draw, _lit, _placed
 from uw_sil.sim.effects.unmodeled_geometry import (SHADE_AMBIENT, TEX_SIZE, TILE, Z_FAR, UnmodeledGeometry, _sample,
                                                    _texture_mean, _texture_mips)
@@ -469,3 +470,31 @@ class OldSnow(MarineSnow):
                 plane = np.bincount(idx, weights=energy[src, c] * wts, minlength=h * w).astype(np.float32)
                 out[c] += cv2.GaussianBlur(plane.reshape(h, w), (0, 0), sb, borderType=cv2.BORDER_CONSTANT)
         return out
+
+
+class OldLamps(ArtificialLight):
+    """The lamps with the ``_irradiance`` of 2fcbd2c (added into the image per lamp and channel)."""
+
+    def _irradiance(self, st, rig: LampRig, a) -> np.ndarray:
+        """(3, H, W) ``E_c`` of the module's formula (power, fill and tint not applied)."""
+        h, w = st["hit"].shape
+        idx, P = st["hit_idx"], st["on_hit"]
+        X, n = P["X"], P["n"]
+        E = np.zeros((3, h * w), np.float32)
+        for l, wl in rig.weights:
+            L, ax = rig.pos[l], rig.axis[l]
+            XL = X[0] * L[0] + X[1] * L[1] + X[2] * L[2]
+            R2 = P["X2"] - 2 * XL + np.float32(L @ L)
+            R = np.sqrt(np.maximum(R2, np.float32(1e-4)))
+            cos_t = (X[0] * ax[0] + X[1] * ax[1] + X[2] * ax[2] - np.float32(L @ ax)) / R
+            nL = n[0] * L[0] + n[1] * L[1] + n[2] * L[2]
+            lamb = np.clip((nL - P["nX"]) / R, 0.0, 1.0)        # n . (L - X) / R
+            g = np.float32(wl * R0 * R0) * rig.beam(cos_t) * lamb / (R * R)
+            # the shadows of a lamp position rounded to SHADOW_GRID, kept for many positions: a fit's candidates
+            # share them
+            Lq = np.round(L / np.float32(SHADOW_GRID)) * np.float32(SHADOW_GRID)
+            S = self._cached(st, "_S", tuple(map(float, Lq)), lambda: self._visibility(st, Lq), entries=64)
+            g *= S.ravel()[idx]
+            for c in range(3):
+                E[c, idx] += g * np.exp(-np.float32(a[c]) * (R - np.float32(R0)))
+        return E.reshape(3, h, w)

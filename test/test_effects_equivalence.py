@@ -195,3 +195,23 @@ def test_the_particles_are_the_ones_before_bit_for_bit(geoms, monkeypatch):
                     old = model.prepare(g, g.camera, seed=7)(model.params.as_vector(), model.effect_vector())
                 assert new.tobytes() == old.tobytes()
     assert sum(t is not None for t in tiled) >= 10            # the tiles were used
+
+
+def test_the_lamps_irradiance_is_the_one_before_bit_for_bit(geoms):
+    """The lamps' irradiance summed on the hit pixels and spread into the image once is the irradiance added into the
+    image per lamp and channel before, for the presets and rigs turned in, tilted, crossed and off to one side."""
+    from uw_sil.sim.effects import artificial_light as al
+
+    lamp = get_effect("artificial_light")
+    rigs = [lamp.values("strong"), lamp.values("mild"),
+            lamp.values({"offset_x": 0.45, "offset_y": 0.25, "toe_in": 0.5, "tilt": 0.4, "half_angle": 0.3,
+                         "shape": 4.0, "balance": 0.3, "fill": 0.2}),
+            lamp.values({"offset_x": -1.2, "offset_y": -0.6, "toe_in": -0.3, "tilt": -0.5, "balance": 0.0,
+                         "cross": 0.5, "cross_y": 0.7, "cross_balance": 0.4, "fill": 0.0, "power": 2.0})]
+    for g in geoms:
+        st = lamp.prepare(g, g.camera)
+        for v in rigs:
+            for a in ([0.35, 0.1, 0.08], [0.0, 0.02, 0.6]):
+                a = np.array(a, np.float32)
+                new = lamp._irradiance(st, al.LampRig(v), a)
+                assert new.tobytes() == ref.OldLamps._irradiance(lamp, st, al.LampRig(v), a).tobytes()

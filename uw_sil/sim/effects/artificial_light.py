@@ -532,7 +532,7 @@ class ArtificialLight(Effect):
         h, w = st["hit"].shape
         idx, P = st["hit_idx"], st["on_hit"]
         X, n = P["X"], P["n"]
-        E = np.zeros((3, h * w), np.float32)
+        Eh = np.zeros((3, idx.size), np.float32)           # on the hit pixels, spread into the image at the end
         for l, wl in rig.weights:
             L, ax = rig.pos[l], rig.axis[l]
             XL = X[0] * L[0] + X[1] * L[1] + X[2] * L[2]
@@ -547,8 +547,11 @@ class ArtificialLight(Effect):
             Lq = np.round(L / np.float32(SHADOW_GRID)) * np.float32(SHADOW_GRID)
             S = self._cached(st, "_S", tuple(map(float, Lq)), lambda: self._visibility(st, Lq), entries=64)
             g *= S.ravel()[idx]
+            R -= np.float32(R0)
             for c in range(3):
-                E[c, idx] += g * np.exp(-np.float32(a[c]) * (R - np.float32(R0)))
+                Eh[c] += g * np.exp(-np.float32(a[c]) * R)
+        E = np.zeros((3, h * w), np.float32)
+        E[:, idx] = Eh
         return E.reshape(3, h, w)
 
     @staticmethod
