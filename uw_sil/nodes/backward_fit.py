@@ -125,7 +125,8 @@ def _parameters(sel: dict, fit: dict, diag: dict) -> list:
         ("diagnose_frames", 8, "frames the diagnosis takes, spread over the frames received (uw-sil diagnose "
          "--frames; up to 2 more, when enough came, are set aside as report frames)" + live, _int_range(3, 100)),
         ("diagnose_max_effects", diag["max_effects"], "effects the greedy selection adds at most (uw-sil diagnose "
-         "--max-effects; particles, noise and compression, judged on statistics, come on top)" + live, _int_range(1, 10)),
+         "--max-effects; particles, noise and compression, judged on statistics, come on top)" + live,
+         _int_range(1, 10)),
         ("diagnose_effects", "", "effects the diagnosis considers, comma-separated (empty: every effect it can "
          "judge)" + live, {}),
         ("output_json", "", "write the diagnosis JSON here (the document of uw-sil diagnose --json; empty: do not)"
