@@ -38,6 +38,15 @@ def geoms():
     return out + [ug.add_floor(g, ug.severity("strong")) for g in out]
 
 
+def _lamp_rigs(lamp) -> list:
+    """The presets and rigs turned in, tilted, crossed and off to one side, as the lamp tests compare them."""
+    return [lamp.values("strong"), lamp.values("mild"),
+            lamp.values({"offset_x": 0.45, "offset_y": 0.25, "toe_in": 0.5, "tilt": 0.4, "half_angle": 0.3,
+                         "shape": 4.0, "balance": 0.3, "fill": 0.2}),
+            lamp.values({"offset_x": -1.2, "offset_y": -0.6, "toe_in": -0.3, "tilt": -0.5, "balance": 0.0,
+                         "cross": 0.5, "cross_y": 0.7, "cross_balance": 0.4, "fill": 0.0, "power": 2.0})]
+
+
 def test_the_shadow_test_is_the_one_before_bit_for_bit(geoms):
     """The pruning's block minima, band indices and the test's padded depth frame give the same candidate points
     and the same visibility as the code before, for every lamp on every view."""
@@ -83,11 +92,7 @@ def test_the_lamps_light_is_the_one_before_bit_for_bit(geoms, monkeypatch):
     from uw_sil.sim.effects import artificial_light as al
 
     lamp = get_effect("artificial_light")
-    rigs = [lamp.values("strong"), lamp.values("mild"),
-            lamp.values({"offset_x": 0.45, "offset_y": 0.25, "toe_in": 0.5, "tilt": 0.4, "half_angle": 0.3,
-                         "shape": 4.0, "balance": 0.3, "fill": 0.2}),
-            lamp.values({"offset_x": -1.2, "offset_y": -0.6, "toe_in": -0.3, "tilt": -0.5, "balance": 0.0,
-                         "cross": 0.5, "cross_y": 0.7, "cross_balance": 0.4, "fill": 0.0, "power": 2.0})]
+    rigs = _lamp_rigs(lamp)
     a = np.array([0.35, 0.1, 0.08], np.float32)
     for g in geoms:
         new = [lamp.illumination(lamp.prepare(g, g.camera), al.LampRig(v), a) for v in rigs]
@@ -203,11 +208,7 @@ def test_the_lamps_irradiance_is_the_one_before_bit_for_bit(geoms):
     from uw_sil.sim.effects import artificial_light as al
 
     lamp = get_effect("artificial_light")
-    rigs = [lamp.values("strong"), lamp.values("mild"),
-            lamp.values({"offset_x": 0.45, "offset_y": 0.25, "toe_in": 0.5, "tilt": 0.4, "half_angle": 0.3,
-                         "shape": 4.0, "balance": 0.3, "fill": 0.2}),
-            lamp.values({"offset_x": -1.2, "offset_y": -0.6, "toe_in": -0.3, "tilt": -0.5, "balance": 0.0,
-                         "cross": 0.5, "cross_y": 0.7, "cross_balance": 0.4, "fill": 0.0, "power": 2.0})]
+    rigs = _lamp_rigs(lamp)
     for g in geoms:
         st = lamp.prepare(g, g.camera)
         for v in rigs:
