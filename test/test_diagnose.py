@@ -1589,3 +1589,33 @@ def test_params_file_draws_the_camera_noise_once(tmp_path, camera, named):
     else:
         assert got["noise_sigma"] == 0.0 and set(got["effects"]) == {"artificial_light", "sensor_noise"}
         assert got["effects"]["sensor_noise"] == (structured if named else white)
+
+
+def test_lamps_alternative_starts_take_the_falloff_out_of_the_base_attenuation():
+    """The lamps' alternative starts (lamps most of the light) begin from a base model whose attenuation no longer
+    carries the fall of brightness with range, which the lamps' 1/r² and their path in the water then carry: over
+    the fit frames' ranges the log-brightness ``-2 ln r - 2 a' r`` of the start has the slope of the current
+    model's ``-a r``; never below clear deep-sea water's attenuation (a channel already below it is kept); the
+    veil and the fog are not touched. (Started from the current attenuation, on a physical dive with a camera
+    response every start ended with a 0.7-1.0 /m and the lamps at a fifth of the light.)"""
+    from types import SimpleNamespace
+
+    from uw_sil.fit.judges import JUDGES
+    from uw_sil.fit.judges.artificial_light import CLEAR_WATER_A
+
+    r = np.array([4.0, 3.1, 2.3, 1.7])
+    job = SimpleNamespace(fit_f=[SimpleNamespace(range_median=v) for v in r])
+    base = np.array([1.6, 0.95, 0.02, 0.01, 0.02, 0.03, 0.3])
+    out = JUDGES["artificial_light"].alt_base(job, base)
+    a_new = out[:3]
+    # red and green: the slopes match
+    for c in (0, 1):
+        slope = np.polyfit(r, -2 * np.log(r) - 2 * a_new[c] * r, 1)[0]
+        assert slope == pytest.approx(-base[c], abs=1e-9) and a_new[c] >= CLEAR_WATER_A[c]
+    assert a_new[2] == base[2]                     # already below clear water's: kept
+    assert np.array_equal(out[3:], base[3:])
+    # an attenuation the falloff cannot account for lands on clear water's, not below
+    low = JUDGES["artificial_light"].alt_base(job, np.array([0.5, 0.3, 0.2, 0, 0, 0, 0]))
+    assert np.allclose(low[:3], CLEAR_WATER_A)
+    # every other plug-in starts its alternatives from the current base
+    assert all(np.array_equal(j.alt_base(job, base), base) for e, j in JUDGES.items() if e != "artificial_light")

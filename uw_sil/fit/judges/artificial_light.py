@@ -12,6 +12,9 @@ from .base import Judge
 MIN_DISTANCE = 0.1
 #: Where ROV lamps sit, metres from the camera (deep-sea ROV practice: 0.3-1.5 m).
 ROV_DISTANCE = (0.3, 1.5)
+#: The lowest attenuation of clear deep-sea water, red, green, blue (1/m): the least the alternative starts give the
+#: base model when the lamps take the falloff from it (:meth:`ArtificialLightJudge.alt_base`).
+CLEAR_WATER_A = (0.35, 0.07, 0.03)
 
 
 class ArtificialLightJudge(Judge):
@@ -53,6 +56,26 @@ class ArtificialLightJudge(Judge):
                     "half_angle": float(q["half_angle"]), "balance": float(q["balance"]),
                     "fill": float(np.clip(q["fill"], 0.0, 0.95)), "veil": 0.002}
         return {"fill": 0.8}
+
+    def alt_base(self, job, base):
+        """The alternative starts make the lamps most of the light (fill 0-0.3): then the lamps, not the base model's
+        attenuation, carry the brightness's fall with range. A model without lamps fits that fall as ``exp(-a r)``
+        (the direct term); lit by lamps beside the camera it is ``r^-2 exp(-2 a' r)`` (1/r² and the lamp->surface
+        path in the same water). Matched in slope of the log over the fit frames' ranges (``s``, the slope of
+        ``ln r`` against ``r`` there): ``a' = (a - 2 s) / 2``, not below clear deep-sea water's
+        (:data:`CLEAR_WATER_A`; an ``a`` already below that is kept). Started from the current attenuation, the
+        lamps' least-squares fits stay where it already takes the falloff (a physical dive with a camera response:
+        ``a`` 0.7-1.0 /m against a true 0.2-0.4, and every start ended with the lamps at a fifth of the light)."""
+        r = np.array([f.range_median for f in job.fit_f], float)
+        r = r[np.isfinite(r) & (r > 0)]
+        if r.size == 0:
+            return base
+        s = float(np.polyfit(r, np.log(r), 1)[0]) if np.ptp(r) > 0.1 * r.mean() else 1.0 / float(r.mean())
+        out = np.array(base, float)
+        floor = np.asarray(CLEAR_WATER_A)
+        a = out[:3]
+        out[:3] = np.where(a > floor, np.maximum(floor, (a - 2.0 * s) / 2.0), a)
+        return out
 
     def explain(self, e, gain, sig, camera=None):
         side, other = ("right", "left") if e.get("offset_x", 0) >= 0 else ("left", "right")

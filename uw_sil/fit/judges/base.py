@@ -322,6 +322,11 @@ class Judge:
         """Start values of the effect's parameters for the refit (physical estimates; {} = defaults)."""
         return {}
 
+    def alt_base(self, job: Job, base: np.ndarray) -> np.ndarray:
+        """The base model's parameters (:data:`~uw_sil.sim.params.RGB_NAMES`) that the :attr:`alt_starts` begin
+        from, given the current ones (default: those)."""
+        return base
+
     # ------------------------------------------------------------------ refit and criterion
 
     def refit(self, job: Job, current: Current, x_starts: Optional[list] = None,
@@ -538,8 +543,9 @@ def theta_refit(job: Job, current: Current, judge: Judge, starts: Optional[list]
     ls_extra = {}
     if judge.least_squares and least_squares and not x_starts:
         lmodel = model.like(job.reduced(job.fit_f, "ls"))
+        alt_base = judge.alt_base(job, current.base)
         ls_x = [ls_fit(lmodel, xs, stride=1, max_nfev=job.ls_nfev, interrupt=job.interrupt)
-                for xs in [x_hint] + [lmodel.x0(current.base, {**cur, judge.effect: {**s0, **a}})
+                for xs in [x_hint] + [lmodel.x0(alt_base, {**cur, judge.effect: {**s0, **a}})
                                       for a in judge.alt_starts] + par]
         cand += ls_x
         if current.ls_params is not None:
