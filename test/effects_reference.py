@@ -3,7 +3,9 @@
 verbatim but for the constants it imports) and forward scatter's blur (:mod:`uw_sil.sim.effects.forward_scatter`
 at bc1afe9, its method as a function), the seafloor (:class:`OldFloor`); at 2fcbd2c the render's normals from its depth
 (:func:`normals_from_depth`, :mod:`uw_sil.sim.model`), the camera noise (:func:`sensor_noise`), the particles'
-blur (:class:`OldSnow`) and the lamps' irradiance (:class:`OldLamps`). Slow on purpose; not used by the package."""
+blur (:class:`OldSnow`) and the lamps' irradiance (:class:`OldLamps`); at 9642fb9 the model's geometry for a set of
+geometry effects' values (:func:`prep_for`, :meth:`uw_sil.sim.model.PreparedModel._prep_for`). Slow on purpose; not
+used by the package."""
 import functools
 import math
 from typing import Optional
@@ -498,3 +500,28 @@ class OldLamps(ArtificialLight):
             for c in range(3):
                 E[c, idx] += g * np.exp(-np.float32(a[c]) * (R - np.float32(R0)))
         return E.reshape(3, h, w)
+
+
+def prep_for(self, vals, seed):
+    """:meth:`uw_sil.sim.model.PreparedModel._prep_for` of 9642fb9: every geometry prepared from scratch."""
+    from uw_sil.sim.effects.base import ModelTerms, effect_rng
+    from uw_sil.sim.model import _Prepared
+
+    active = [(k, e) for k, e in self._geo_effects if not e.is_identity(vals[k])]
+    if not active:
+        if self._base_prep is None:
+            self._base_prep = self._covered(_Prepared(self.geom0, self.fog, self._other))
+        return self._base_prep
+    draws = any(e.draws(vals[k]) for k, e in active) and seed is not None
+    key = tuple((k, tuple(vals[k].values())) for k, _ in active) + ((seed,) if draws else ())
+    p = self._cache.get(key)
+    if p is None:
+        terms = ModelTerms(self.geom0, self.camera, np.zeros(3), np.zeros(3), 0.0, self.fog, None, None, None,
+                           restoring=seed is None)
+        for k, e in active:
+            e.apply(terms, vals[k], None if seed is None else effect_rng(seed, e.name))
+        p = self._covered(_Prepared(terms.geom, self.fog, self._other))
+        if len(self._cache) >= 8:
+            self._cache.clear()
+        self._cache[key] = p
+    return p

@@ -216,3 +216,44 @@ def test_the_lamps_irradiance_is_the_one_before_bit_for_bit(geoms):
                 a = np.array(a, np.float32)
                 new = lamp._irradiance(st, al.LampRig(v), a)
                 assert new.tobytes() == ref.OldLamps._irradiance(lamp, st, al.LampRig(v), a).tobytes()
+
+
+def test_a_geometry_of_the_same_shape_shares_its_terms_bit_for_bit(geoms, monkeypatch):
+    """The model's geometry for a seafloor that differs from a kept one in albedo or contrast only shares that one's
+    shape terms and the effects' state (the lamps' shadows, forward scatter's ranges): every image equals the one made
+    with every geometry prepared from scratch (the code before), on the steps of a least-squares Jacobian (each
+    parameter moved in turn, over several iterations, past the kept geometries' limit), with and without a pose
+    error (which changes the shape: no sharing across its values), at two seeds."""
+    from uw_sil.sim.model import PreparedModel, UnderwaterModel, _Prepared
+
+    shared = []
+    real = _Prepared.__init__
+    monkeypatch.setattr(_Prepared, "__init__", lambda s, *a, like=None: shared.append(like is not None)
+                        or real(s, *a, like=like))
+    cases = [({"unmodeled_geometry": "strong", "artificial_light": "strong", "forward_scatter": "mild"},
+              ("floor_y", "tilt", "albedo", "contrast", "offset_x", "fill", "strength")),
+             ({"pose_error": "mild", "unmodeled_geometry": "mild", "artificial_light": "mild"},
+              ("tx", "rz", "albedo", "contrast", "floor_y", "half_angle"))]
+    for effects, moved in cases:
+        model = UnderwaterModel(effects=effects)
+        names = [n.split(".")[1] for n in model.effect_param_names()]
+        lo, hi = model.effect_bounds()
+        base = model.params.as_vector()
+        steps = []
+        for it in range(3):
+            x = np.clip(model.effect_vector() + 0.01 * it * (hi - lo), lo, hi)
+            steps.append(x)
+            for n in moved:
+                j, xs = names.index(n), x.copy()
+                xs[j] += 0.004 * (hi[j] - lo[j]) * (-1 if xs[j] > lo[j] else 1)
+                steps.append(xs)
+        for g in (geoms[0], geoms[2]):
+            for seed in (3, 11):
+                pm = model.prepare(g, g.camera, seed=seed)
+                new = [pm(base, xs) for xs in steps]
+                with monkeypatch.context() as m:
+                    m.setattr(PreparedModel, "_prep_for", ref.prep_for)
+                    pm = model.prepare(g, g.camera, seed=seed)
+                    for xs, got in zip(steps, new):
+                        assert got.tobytes() == pm(base, xs).tobytes()
+    assert sum(shared) >= 24                                 # geometries were shared

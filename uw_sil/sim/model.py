@@ -462,9 +462,16 @@ class _Prepared:
 
     __slots__ = ("geom", "r", "zf", "mask", "planes", "state")
 
-    def __init__(self, geom: Geometry, fog: str, effects):
-        hit = geom.hit
+    def __init__(self, geom: Geometry, fog: str, effects, like: Optional["_Prepared"] = None):
         self.geom = geom
+        if like is not None:
+            # ``like``: made for surfaces of the same shape (a geometry effect's values that change their colour
+            # only, :meth:`uw_sil.sim.effects.base.Effect.shape_key`); what depends on the shape is the same
+            # (the effects' per-render state too, none of which reads the colour): shared, the colour made anew
+            self.mask, self.r, self.zf, self.state = like.mask, like.r, like.zf, like.state
+            self.planes = np.ascontiguousarray(np.moveaxis(geom.rgb, 2, 0))
+            return
+        hit = geom.hit
         self.mask = hit.astype(np.float32)
         self.r = np.where(hit, geom.range, 0).astype(np.float32)
         z = np.where(hit, geom.depth, 0).astype(np.float32)
@@ -518,6 +525,7 @@ class PreparedModel:
             self.cover = None
         self._base_prep = None
         self._cache = {}
+        self._shapes = {}                # shape key -> a prepared geometry of that shape (in _cache)
         # the first random sensor effect (camera noise): the image before it is kept between calls
         self._cut = next((k for k, e in enumerate(self.effects) if e.stage == "sensor" and e.random_per_frame), None)
         self._before_cut = None
@@ -550,10 +558,19 @@ class PreparedModel:
                                restoring=seed is None)
             for k, e in active:
                 e.apply(terms, vals[k], None if seed is None else effect_rng(seed, e.name))
-            p = self._covered(_Prepared(terms.geom, self.fog, self._other))
+            # a kept geometry of the same shape (a least-squares Jacobian's column of the seafloor's albedo or
+            # contrast): its shape's terms and the effects' state (the lamps' shadows) are shared, not made again
+            shape = tuple((k, e.shape_key(vals[k])) for k, e in active) + ((seed,) if draws else ())
+            twin = self._shapes.get(shape)
+            if twin is not None:
+                p = _Prepared(terms.geom, self.fog, self._other, like=twin)
+            else:
+                p = self._covered(_Prepared(terms.geom, self.fog, self._other))
             if len(self._cache) >= 8:
                 self._cache.clear()
+                self._shapes.clear()
             self._cache[key] = p
+            self._shapes.setdefault(shape, p)
         return p
 
     def _terms(self, base, effect_vector, seed, restoring=False):

@@ -331,6 +331,12 @@ class Effect:
         """True if these values leave the image unchanged (all at their defaults, by default)."""
         return all(values[p.name] == p.default for p in self.params)
 
+    def shape_key(self, values: dict) -> tuple:
+        """Geometry stage: the values the surfaces' shape depends on (depth, range, points, normals, labels, parts:
+        what the other effects prepare from); two value sets with the same key differ in the surfaces' colour
+        only. Default: all the values."""
+        return tuple(values.values())
+
     def draws(self, values: dict) -> bool:
         """Whether these values make the effect draw random numbers (e.g. pose jitter > 0)."""
         return self.random_per_frame

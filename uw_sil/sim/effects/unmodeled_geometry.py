@@ -90,6 +90,9 @@ class UnmodeledGeometry(Effect):
     def is_identity(self, values):
         return False                       # listed = the floor is there
 
+    def shape_key(self, values):
+        return values["floor_y"], values["tilt"]       # albedo and contrast change the floor's colour only
+
     def apply(self, terms, values, rng):
         terms.geom = self.add_floor(terms.geom, values)
 
