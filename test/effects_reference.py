@@ -4,8 +4,8 @@ verbatim but for the constants it imports) and forward scatter's blur (:mod:`uw_
 at bc1afe9, its method as a function), the seafloor (:class:`OldFloor`); at 2fcbd2c the render's normals from its depth
 (:func:`normals_from_depth`, :mod:`uw_sil.sim.model`), the camera noise (:func:`sensor_noise`), the particles'
 blur (:class:`OldSnow`) and the lamps' irradiance (:class:`OldLamps`); at 9642fb9 the model's geometry for a set of
-geometry effects' values (:func:`prep_for`, :meth:`uw_sil.sim.model.PreparedModel._prep_for`). Slow on purpose; not
-used by the package."""
+geometry effects' values (:func:`prep_for`, :meth:`uw_sil.sim.model.PreparedModel._prep_for`) and the lamps' irradiance
+and veil (:class:`LampsBefore`). Slow on purpose; not used by the package."""
 import functools
 import math
 from typing import Optional
@@ -13,8 +13,8 @@ from typing import Optional
 import cv2
 import numpy as np
 
-from uw_sil.sim.effects.artificial_light import (R0, SHADOW_BIAS, SHADOW_CHUNK, SHADOW_GRID, SHADOW_PX, SHADOW_T,
-                                                 SHADOW_THICK, ArtificialLight, LampRig)
+from uw_sil.sim.effects.artificial_light import (HG_G, N_S, R0, SHADOW_BIAS, SHADOW_CHUNK, SHADOW_GRID, SHADOW_PX,
+                                                 SHADOW_T, SHADOW_THICK, ArtificialLight, LampRig)
 from uw_sil.sim.effects.marine_snow import _SIGMA_BINS, Z_MAX, Z_MIN, MarineSnow, _draw, _lit, _placed
 from uw_sil.sim.effects.unmodeled_geometry import (SHADE_AMBIENT, TEX_SIZE, TILE, Z_FAR, UnmodeledGeometry, _sample,
                                                    _texture_mean, _texture_mips)
@@ -525,3 +525,72 @@ def prep_for(self, vals, seed):
             self._cache.clear()
         self._cache[key] = p
     return p
+
+
+class LampsBefore(ArtificialLight):
+    """The lamps with the ``_irradiance`` and ``_veil_unit`` of 9642fb9 (every lamp's terms made anew)."""
+
+    def _irradiance(self, st, rig: LampRig, a) -> np.ndarray:
+        """(3, H, W) ``E_c`` of the module's formula (power, fill and tint not applied)."""
+        h, w = st["hit"].shape
+        idx, P = st["hit_idx"], st["on_hit"]
+        X, n = P["X"], P["n"]
+        Eh = np.zeros((3, idx.size), np.float32)           # on the hit pixels, spread into the image at the end
+        for l, wl in rig.weights:
+            L, ax = rig.pos[l], rig.axis[l]
+            XL = X[0] * L[0] + X[1] * L[1] + X[2] * L[2]
+            R2 = P["X2"] - 2 * XL + np.float32(L @ L)
+            R = np.sqrt(np.maximum(R2, np.float32(1e-4)))
+            cos_t = (X[0] * ax[0] + X[1] * ax[1] + X[2] * ax[2] - np.float32(L @ ax)) / R
+            nL = n[0] * L[0] + n[1] * L[1] + n[2] * L[2]
+            lamb = np.clip((nL - P["nX"]) / R, 0.0, 1.0)        # n . (L - X) / R
+            g = np.float32(wl * R0 * R0) * rig.beam(cos_t) * lamb / (R * R)
+            # the shadows of a lamp position rounded to SHADOW_GRID, kept for many positions: a fit's candidates
+            # share them
+            Lq = np.round(L / np.float32(SHADOW_GRID)) * np.float32(SHADOW_GRID)
+            S = self._cached(st, "_S", tuple(map(float, Lq)), lambda: self._visibility(st, Lq), entries=64)
+            g *= S.ravel()[idx]
+            R -= np.float32(R0)
+            for c in range(3):
+                Eh[c] += g * np.exp(-np.float32(a[c]) * R)
+        E = np.zeros((3, h * w), np.float32)
+        E[:, idx] = Eh
+        return E.reshape(3, h, w)
+
+
+    def _veil_unit(self, st, rig: LampRig, a) -> np.ndarray:
+        """(3, H, W) the veil of unit strength."""
+        d, s = st["d"], st["s"][:, None, None]
+        gh, gw = st["grid"]
+        f = np.zeros((3, N_S, gh, gw), np.float32)
+        hg_norm = np.float32((1 + HG_G) ** 3)
+        for l, wl in rig.weights:
+            L, ax = rig.pos[l], rig.axis[l]
+            dL = d[0] * L[0] + d[1] * L[1] + d[2] * L[2]             # (gh, gw)
+            da = d[0] * ax[0] + d[1] * ax[1] + d[2] * ax[2]
+            R2 = s * s - 2 * s * dL + np.float32(L @ L)             # (K, gh, gw): |s d - L|^2
+            R = np.sqrt(np.maximum(R2, np.float32(1e-4)))
+            cos_t = (s * da - np.float32(L @ ax)) / R
+            cos_psi = (dL - s) / R                                  # incoming (s d - L)/R, outgoing -d
+            q = np.float32(1 + HG_G * HG_G) - np.float32(2 * HG_G) * cos_psi
+            hg = hg_norm / (q * np.sqrt(q))                          # HG(psi) / HG(pi)
+            g = np.float32(wl) * rig.beam(cos_t) * hg / R2.clip(1e-4)
+            for c in range(3):
+                f[c] += g * np.exp(-np.float32(a[c]) * (R + s))
+        # cumulative trapezoid along the distances, then into an atlas of distance layers side by side
+        # (each padded by one duplicated column, one padded row) for two bilinear lookups per pixel
+        inc = (f[:, 1:] + f[:, :-1]) * (np.float32(0.5) * st["ds"])[None, :, None, None]
+        inc = np.ascontiguousarray(inc.transpose(1, 2, 3, 0))
+        C = np.zeros((N_S, gh, gw, 3), np.float32)
+        for k in range(1, N_S):                                     # (np.cumsum is slower here)
+            np.add(C[k - 1], inc[k - 1], out=C[k])
+        tile = gw + 1
+        atlas = np.empty((gh + 1, N_S * tile, 3), np.float32)
+        layers = atlas[:gh].reshape(gh, N_S, tile, 3)
+        layers[:, :, :gw] = C.transpose(1, 0, 2, 3)
+        layers[:, :, gw] = C[:, :, -1].transpose(1, 0, 2)
+        atlas[gh] = atlas[gh - 1]
+        lo = cv2.remap(atlas, st["mapx_lo"], st["mapy"], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        hi = cv2.remap(atlas, st["mapx_hi"], st["mapy"], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        V = lo + st["frac"] * (hi - lo)
+        return np.ascontiguousarray(np.moveaxis(V, 2, 0))

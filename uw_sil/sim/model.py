@@ -462,7 +462,8 @@ class _Prepared:
 
     __slots__ = ("geom", "r", "zf", "mask", "planes", "state")
 
-    def __init__(self, geom: Geometry, fog: str, effects, like: Optional["_Prepared"] = None):
+    def __init__(self, geom: Geometry, fog: str, effects, like: Optional["_Prepared"] = None,
+                 shared: Optional[dict] = None):
         self.geom = geom
         if like is not None:
             # ``like``: made for surfaces of the same shape (a geometry effect's values that change their colour
@@ -478,6 +479,10 @@ class _Prepared:
         self.zf = z * z if fog == "exp2" else z
         self.planes = np.ascontiguousarray(np.moveaxis(geom.rgb, 2, 0))
         self.state = {e.name: e.prepare(geom, geom.camera) for e in effects if e.stage != "geometry"}
+        if shared is not None:          # what the effects share across the geometries of one prepared model
+            for e in effects:
+                if e.stage != "geometry":
+                    e.share(self.state[e.name], shared.setdefault(e.name, {}))
 
 
 class PreparedModel:
@@ -526,6 +531,7 @@ class PreparedModel:
         self._base_prep = None
         self._cache = {}
         self._shapes = {}                # shape key -> a prepared geometry of that shape (in _cache)
+        self._shared = {}                # effect name -> what its states share across geometries (Effect.share)
         # the first random sensor effect (camera noise): the image before it is kept between calls
         self._cut = next((k for k, e in enumerate(self.effects) if e.stage == "sensor" and e.random_per_frame), None)
         self._before_cut = None
@@ -548,7 +554,7 @@ class PreparedModel:
         active = [(k, e) for k, e in self._geo_effects if not e.is_identity(vals[k])]
         if not active:
             if self._base_prep is None:
-                self._base_prep = self._covered(_Prepared(self.geom0, self.fog, self._other))
+                self._base_prep = self._covered(_Prepared(self.geom0, self.fog, self._other, shared=self._shared))
             return self._base_prep
         draws = any(e.draws(vals[k]) for k, e in active) and seed is not None
         key = tuple((k, tuple(vals[k].values())) for k, _ in active) + ((seed,) if draws else ())
@@ -565,7 +571,7 @@ class PreparedModel:
             if twin is not None:
                 p = _Prepared(terms.geom, self.fog, self._other, like=twin)
             else:
-                p = self._covered(_Prepared(terms.geom, self.fog, self._other))
+                p = self._covered(_Prepared(terms.geom, self.fog, self._other, shared=self._shared))
             if len(self._cache) >= 8:
                 self._cache.clear()
                 self._shapes.clear()

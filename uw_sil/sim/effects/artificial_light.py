@@ -94,6 +94,7 @@ SHADOW_PX = 0.75
 SHADOW_THICK = 0.3         # m, the deepest an occluder is assumed to be
 SHADOW_GRID = 0.05         # m, lamp positions rounded for the shadow test (its cache key): a lamp's own size
 SHADOW_CHUNK = 1 << 17     # points x samples per array of the shadow test (2-3 MB per float32 temporary)
+LAMP_ENTRIES = 16          # lamp positions and axes whose terms are kept (a Jacobian's columns move a few lamps each)
 HG_G = 0.9                 # Henyey-Greenstein asymmetry of the veil
 S_MIN, S_MAX, N_S = 0.02, 12.0, 32
 GRID_W = 48
@@ -496,6 +497,9 @@ class ArtificialLight(Effect):
         st["mapx_hi"] = ((j + 1) * tile + ug).astype(np.float32)
         st["mapy"] = np.broadcast_to(vg, (h, w)).astype(np.float32)
         st["grid"] = (gh, gw)
+        # what the veil's grid depends on (its integral, kept in st["camera"], shared by geometries of this camera)
+        st["camera_key"] = (h, w, float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy))
+        st["camera"] = {}
         return st
 
     # ------------------------------------------------------------------ per parameter set
@@ -506,13 +510,17 @@ class ArtificialLight(Effect):
     cache_entries = 8
     CACHE_BYTES = 64 << 20
 
-    def _cached(self, st, kind: str, key, compute, entries: Optional[int] = None) -> np.ndarray:
+    def _cached(self, st, kind: str, key, compute, entries: Optional[int] = None):
+        """``compute()`` (an array or a tuple of arrays, read-only) kept in ``st[kind]`` under ``key`` (LRU)."""
         cache = st.setdefault(kind, {})
         hit = cache.pop(key, None)
         if hit is None:
             hit = compute()
-            hit.setflags(write=False)
-            room = min(self.cache_entries if entries is None else entries, self.CACHE_BYTES // max(hit.nbytes, 1))
+            parts = hit if isinstance(hit, tuple) else (hit,)
+            for a in parts:
+                a.setflags(write=False)
+            nbytes = sum(a.nbytes for a in parts)
+            room = min(self.cache_entries if entries is None else entries, self.CACHE_BYTES // max(nbytes, 1))
             while cache and len(cache) >= room:
                 cache.pop(next(iter(cache)))         # least recently used first
         if self.cache_entries > 0:
@@ -530,29 +538,41 @@ class ArtificialLight(Effect):
     def _irradiance(self, st, rig: LampRig, a) -> np.ndarray:
         """(3, H, W) ``E_c`` of the module's formula (power, fill and tint not applied)."""
         h, w = st["hit"].shape
-        idx, P = st["hit_idx"], st["on_hit"]
-        X, n = P["X"], P["n"]
+        idx = st["hit_idx"]
         Eh = np.zeros((3, idx.size), np.float32)           # on the hit pixels, spread into the image at the end
         for l, wl in rig.weights:
-            L, ax = rig.pos[l], rig.axis[l]
-            XL = X[0] * L[0] + X[1] * L[1] + X[2] * L[2]
-            R2 = P["X2"] - 2 * XL + np.float32(L @ L)
-            R = np.sqrt(np.maximum(R2, np.float32(1e-4)))
-            cos_t = (X[0] * ax[0] + X[1] * ax[1] + X[2] * ax[2] - np.float32(L @ ax)) / R
-            nL = n[0] * L[0] + n[1] * L[1] + n[2] * L[2]
-            lamb = np.clip((nL - P["nX"]) / R, 0.0, 1.0)        # n . (L - X) / R
-            g = np.float32(wl * R0 * R0) * rig.beam(cos_t) * lamb / (R * R)
-            # the shadows of a lamp position rounded to SHADOW_GRID, kept for many positions: a fit's candidates
-            # share them
-            Lq = np.round(L / np.float32(SHADOW_GRID)) * np.float32(SHADOW_GRID)
-            S = self._cached(st, "_S", tuple(map(float, Lq)), lambda: self._visibility(st, Lq), entries=64)
-            g *= S.ravel()[idx]
-            R -= np.float32(R0)
+            # a lamp's terms that do not depend on its weight, beam or the attenuation are kept per lamp position and
+            # axis, its beam and its attenuation per channel on top (the Jacobian's columns of the weights, the beam,
+            # the attenuation and the lamps that another column does not move find them)
+            gk = (rig.pos[l].tobytes(), rig.axis[l].tobytes())
+            cos_t, lamb, RR, S, Rm = self._cached(st, "_El", gk, lambda: self._lamp_terms(st, rig.pos[l], rig.axis[l]),
+                                                  entries=LAMP_ENTRIES)
+            B = self._cached(st, "_Eb", gk + (float(rig.half), float(rig.shape)), lambda: rig.beam(cos_t),
+                             entries=LAMP_ENTRIES)
+            g = np.float32(wl * R0 * R0) * B * lamb / RR
+            g *= S
             for c in range(3):
-                Eh[c] += g * np.exp(-np.float32(a[c]) * R)
+                Eh[c] += g * self._cached(st, "_Ee", gk + (c, float(a[c])), lambda: np.exp(-np.float32(a[c]) * Rm),
+                                          entries=3 * LAMP_ENTRIES)
         E = np.zeros((3, h * w), np.float32)
         E[:, idx] = Eh
         return E.reshape(3, h, w)
+
+    def _lamp_terms(self, st, L, ax) -> tuple:
+        """A lamp's terms on the hit pixels (:meth:`_irradiance`): ``cos(theta)`` off its axis, the Lambert term,
+        ``R^2``, its shadows and ``R - R0``."""
+        idx, P = st["hit_idx"], st["on_hit"]
+        X, n = P["X"], P["n"]
+        XL = X[0] * L[0] + X[1] * L[1] + X[2] * L[2]
+        R2 = P["X2"] - 2 * XL + np.float32(L @ L)
+        R = np.sqrt(np.maximum(R2, np.float32(1e-4)))
+        cos_t = (X[0] * ax[0] + X[1] * ax[1] + X[2] * ax[2] - np.float32(L @ ax)) / R
+        nL = n[0] * L[0] + n[1] * L[1] + n[2] * L[2]
+        lamb = np.clip((nL - P["nX"]) / R, 0.0, 1.0)        # n . (L - X) / R
+        # the shadows of a lamp position rounded to SHADOW_GRID, kept for many positions: a fit's candidates share them
+        Lq = np.round(L / np.float32(SHADOW_GRID)) * np.float32(SHADOW_GRID)
+        S = self._cached(st, "_S", tuple(map(float, Lq)), lambda: self._visibility(st, Lq), entries=64)
+        return cos_t, lamb, R * R, S.ravel()[idx], R - np.float32(R0)
 
     @staticmethod
     def _visibility(st, L) -> np.ndarray:
@@ -591,27 +611,37 @@ class ArtificialLight(Effect):
         V1 = self._cached(st, "_V", (rig.key, *map(float, a)), lambda: self._veil_unit(st, rig, a))
         return (np.float32(strength) * rig.tint)[:, None, None] * V1
 
+    def share(self, st, shared: dict) -> None:
+        # the veil's integral along the viewing directions does not depend on the surfaces, only on the camera:
+        # kept for every geometry of a prepared model (a seafloor's height moved in a Jacobian's column)
+        st["camera"] = shared.setdefault(st["camera_key"], st["camera"])
+
     def _veil_unit(self, st, rig: LampRig, a) -> np.ndarray:
         """(3, H, W) the veil of unit strength."""
-        d, s = st["d"], st["s"][:, None, None]
+        atlas = self._cached(st["camera"], "_Va", (rig.key, *map(float, a)), lambda: self._veil_atlas(st, rig, a))
+        lo = cv2.remap(atlas, st["mapx_lo"], st["mapy"], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        hi = cv2.remap(atlas, st["mapx_hi"], st["mapy"], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        V = lo + st["frac"] * (hi - lo)
+        return np.ascontiguousarray(np.moveaxis(V, 2, 0))
+
+    def _veil_atlas(self, st, rig: LampRig, a) -> np.ndarray:
+        """The veil's integral on the grid of viewing directions and distances (cumulative trapezoid) as an atlas of
+        distance layers side by side (each padded by one duplicated column, one padded row) for two bilinear lookups
+        per pixel (:meth:`_veil_unit`)."""
+        cam = st["camera"]
         gh, gw = st["grid"]
         f = np.zeros((3, N_S, gh, gw), np.float32)
-        hg_norm = np.float32((1 + HG_G) ** 3)
         for l, wl in rig.weights:
-            L, ax = rig.pos[l], rig.axis[l]
-            dL = d[0] * L[0] + d[1] * L[1] + d[2] * L[2]             # (gh, gw)
-            da = d[0] * ax[0] + d[1] * ax[1] + d[2] * ax[2]
-            R2 = s * s - 2 * s * dL + np.float32(L @ L)             # (K, gh, gw): |s d - L|^2
-            R = np.sqrt(np.maximum(R2, np.float32(1e-4)))
-            cos_t = (s * da - np.float32(L @ ax)) / R
-            cos_psi = (dL - s) / R                                  # incoming (s d - L)/R, outgoing -d
-            q = np.float32(1 + HG_G * HG_G) - np.float32(2 * HG_G) * cos_psi
-            hg = hg_norm / (q * np.sqrt(q))                          # HG(psi) / HG(pi)
-            g = np.float32(wl) * rig.beam(cos_t) * hg / R2.clip(1e-4)
+            # per lamp position and axis, beam and attenuation per channel, as the light on surfaces (_irradiance)
+            gk = (rig.pos[l].tobytes(), rig.axis[l].tobytes())
+            cos_t, hg, R2, Rs = self._cached(cam, "_Vl", gk, lambda: self._veil_lamp(st, rig.pos[l], rig.axis[l]),
+                                             entries=LAMP_ENTRIES)
+            B = self._cached(cam, "_Vb", gk + (float(rig.half), float(rig.shape)), lambda: rig.beam(cos_t),
+                             entries=LAMP_ENTRIES)
+            g = np.float32(wl) * B * hg / R2
             for c in range(3):
-                f[c] += g * np.exp(-np.float32(a[c]) * (R + s))
-        # cumulative trapezoid along the distances, then into an atlas of distance layers side by side
-        # (each padded by one duplicated column, one padded row) for two bilinear lookups per pixel
+                f[c] += g * self._cached(cam, "_Ve", gk + (c, float(a[c])), lambda: np.exp(-np.float32(a[c]) * Rs),
+                                         entries=3 * LAMP_ENTRIES)
         inc = (f[:, 1:] + f[:, :-1]) * (np.float32(0.5) * st["ds"])[None, :, None, None]
         inc = np.ascontiguousarray(inc.transpose(1, 2, 3, 0))
         C = np.zeros((N_S, gh, gw, 3), np.float32)
@@ -623,10 +653,23 @@ class ArtificialLight(Effect):
         layers[:, :, :gw] = C.transpose(1, 0, 2, 3)
         layers[:, :, gw] = C[:, :, -1].transpose(1, 0, 2)
         atlas[gh] = atlas[gh - 1]
-        lo = cv2.remap(atlas, st["mapx_lo"], st["mapy"], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        hi = cv2.remap(atlas, st["mapx_hi"], st["mapy"], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        V = lo + st["frac"] * (hi - lo)
-        return np.ascontiguousarray(np.moveaxis(V, 2, 0))
+        return atlas
+
+    @staticmethod
+    def _veil_lamp(st, L, ax) -> tuple:
+        """A lamp's terms on the veil's grid (:meth:`_veil_atlas`): ``cos(theta)`` off its axis, the phase
+        ``HG(psi) / HG(pi)``, ``|s d - L|^2`` (at least 1e-4) and ``R + s``."""
+        d, s = st["d"], st["s"][:, None, None]
+        hg_norm = np.float32((1 + HG_G) ** 3)
+        dL = d[0] * L[0] + d[1] * L[1] + d[2] * L[2]             # (gh, gw)
+        da = d[0] * ax[0] + d[1] * ax[1] + d[2] * ax[2]
+        R2 = s * s - 2 * s * dL + np.float32(L @ L)             # (K, gh, gw): |s d - L|^2
+        R = np.sqrt(np.maximum(R2, np.float32(1e-4)))
+        cos_t = (s * da - np.float32(L @ ax)) / R
+        cos_psi = (dL - s) / R                                  # incoming (s d - L)/R, outgoing -d
+        q = np.float32(1 + HG_G * HG_G) - np.float32(2 * HG_G) * cos_psi
+        hg = hg_norm / (q * np.sqrt(q))                          # HG(psi) / HG(pi)
+        return cos_t, hg, R2.clip(1e-4), R + s
 
     def apply(self, terms, values, rng):
         rig = LampRig(values)

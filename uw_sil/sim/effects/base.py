@@ -347,6 +347,11 @@ class Effect:
         """Per-render precomputation (parameter independent), kept in ``terms.state[name]``."""
         return None
 
+    def share(self, state, shared: dict) -> None:
+        """Hand ``state`` (of :meth:`prepare`) what it may share with the states of the other geometries of one
+        prepared model (the same camera and image size; ``shared``: a dict of this effect's, kept by the model):
+        what does not depend on the surfaces. Default: nothing."""
+
     def apply(self, terms: ModelTerms, values: dict, rng: Optional[np.random.Generator]) -> None:
         """Apply the effect to ``terms`` in place (geometry effects replace ``terms.geom``).
 
