@@ -1619,3 +1619,16 @@ def test_lamps_alternative_starts_take_the_falloff_out_of_the_base_attenuation()
     assert np.allclose(low[:3], CLEAR_WATER_A)
     # every other plug-in starts its alternatives from the current base
     assert all(np.array_equal(j.alt_base(job, base), base) for e, j in JUDGES.items() if e != "artificial_light")
+
+
+def test_the_height_of_top_and_bottom_lamps_that_give_no_light_is_no_doubt():
+    """Lamps fitted with no top or bottom lamp (``cross`` ~0) have no such lamps' height: ``cross_y`` on its bound
+    then is no doubt (the image does not depend on it); with the cross giving light it still is."""
+    from uw_sil.fit.judges import JUDGES
+    from uw_sil.sim.effects import get_effect
+
+    judge = JUDGES["artificial_light"]
+    values = {**get_effect("artificial_light").defaults(), "fill": 0.05, "cross_y": 1.0, "cross": 0.0001}
+    assert judge.plausibility(values) == []
+    doubts = judge.plausibility({**values, "cross": 0.2})
+    assert len(doubts) == 1 and "cross_y" in doubts[0], doubts

@@ -12,6 +12,9 @@ from .base import Judge
 MIN_DISTANCE = 0.1
 #: Where ROV lamps sit, metres from the camera (deep-sea ROV practice: 0.3-1.5 m).
 ROV_DISTANCE = (0.3, 1.5)
+#: Share of the lamps' light below which the top and bottom lamps are not there
+#: (:meth:`ArtificialLightJudge.on_bounds`).
+NO_CROSS = 0.01
 #: The lowest attenuation of clear deep-sea water, red, green, blue (1/m): the least the alternative starts give the
 #: base model when the lamps take the falloff from it (:meth:`ArtificialLightJudge.alt_base`).
 CLEAR_WATER_A = (0.35, 0.07, 0.03)
@@ -56,6 +59,16 @@ class ArtificialLightJudge(Judge):
                     "half_angle": float(q["half_angle"]), "balance": float(q["balance"]),
                     "fill": float(np.clip(q["fill"], 0.0, 0.95)), "veil": 0.002}
         return {"fill": 0.8}
+
+    def on_bounds(self, values):
+        """As every plug-in's, but for the top and bottom lamps' height where they give none of the light (``cross``
+        below :data:`NO_CROSS`): lamps that are not there have no height, and the image does not depend on it (a
+        physical dive's lamps fitted with ``cross`` 0.0001 and ``cross_y`` on its bound lost their round to a camera
+        response the recording lacks, for that doubt)."""
+        out = super().on_bounds(values)
+        if values.get("cross", 0.0) < NO_CROSS:
+            out = [(n, side) for n, side in out if n != "cross_y"]
+        return out
 
     def alt_base(self, job, base):
         """The alternative starts make the lamps most of the light (fill 0-0.3): then the lamps, not the base model's
