@@ -930,6 +930,12 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
                 # the refit accepted holds values at their nearest physically possible ones: so do its full-budget
                 # refit and every later fit of a model with it (the next rounds, the elimination, the polish)
                 job = replace(job, judges={**job.judges, e: pinned_jobs[e].judges[e]})
+                # and the forward selection's fits of models with it made without the hold are not the fits the
+                # elimination compares (their plug-in had more free parameters: an own four-effect dive's
+                # elimination took such a fit of lamps + β_B≠β_D + camera response, and the polish failed on its
+                # parameter count)
+                for k in [k for k in earlier if e in k]:
+                    del earlier[k]
             if judge.kind == "theta" and not judge.absorb and job.max_iter > cheap.max_iter and not keep:
                 say(f"round {rnd}: refitting {current.name} + {e} with the full budget")
                 starts = ([r.extra["ls_x"]] if "ls_x" in r.extra else []) + ([] if r.started_at_current else [r.x])
