@@ -527,36 +527,9 @@ def prep_for(self, vals, seed):
     return p
 
 
-class LampsBefore(ArtificialLight):
-    """The lamps with the ``_irradiance`` and ``_veil_unit`` of 9642fb9 (every lamp's terms made anew)."""
-
-    def _irradiance(self, st, rig: LampRig, a) -> np.ndarray:
-        """(3, H, W) ``E_c`` of the module's formula (power, fill and tint not applied)."""
-        h, w = st["hit"].shape
-        idx, P = st["hit_idx"], st["on_hit"]
-        X, n = P["X"], P["n"]
-        Eh = np.zeros((3, idx.size), np.float32)           # on the hit pixels, spread into the image at the end
-        for l, wl in rig.weights:
-            L, ax = rig.pos[l], rig.axis[l]
-            XL = X[0] * L[0] + X[1] * L[1] + X[2] * L[2]
-            R2 = P["X2"] - 2 * XL + np.float32(L @ L)
-            R = np.sqrt(np.maximum(R2, np.float32(1e-4)))
-            cos_t = (X[0] * ax[0] + X[1] * ax[1] + X[2] * ax[2] - np.float32(L @ ax)) / R
-            nL = n[0] * L[0] + n[1] * L[1] + n[2] * L[2]
-            lamb = np.clip((nL - P["nX"]) / R, 0.0, 1.0)        # n . (L - X) / R
-            g = np.float32(wl * R0 * R0) * rig.beam(cos_t) * lamb / (R * R)
-            # the shadows of a lamp position rounded to SHADOW_GRID, kept for many positions: a fit's candidates
-            # share them
-            Lq = np.round(L / np.float32(SHADOW_GRID)) * np.float32(SHADOW_GRID)
-            S = self._cached(st, "_S", tuple(map(float, Lq)), lambda: self._visibility(st, Lq), entries=64)
-            g *= S.ravel()[idx]
-            R -= np.float32(R0)
-            for c in range(3):
-                Eh[c] += g * np.exp(-np.float32(a[c]) * R)
-        E = np.zeros((3, h * w), np.float32)
-        E[:, idx] = Eh
-        return E.reshape(3, h, w)
-
+class LampsBefore(OldLamps):
+    """The lamps with the ``_veil_unit`` of 9642fb9 (every lamp's terms made anew) and :class:`OldLamps`' light on
+    surfaces, which 9642fb9's equals bit for bit (``test_the_lamps_irradiance_is_the_one_before_bit_for_bit``)."""
 
     def _veil_unit(self, st, rig: LampRig, a) -> np.ndarray:
         """(3, H, W) the veil of unit strength."""
