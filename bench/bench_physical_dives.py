@@ -139,7 +139,7 @@ def main(argv=None) -> int:
         rows = {k: [] for k in dseeds}
         for seed in seeds:
             bag = root / f"dive{seed}" / "trial.mcap"
-            if not bag.exists():
+            if not bag.with_suffix("").exists():     # (written as the bag directory dive{seed}/trial/)
                 write_dive(seed, bag)
             for k in dseeds:
                 js = root / (f"dive{seed}.json" if k == 0 else f"dive{seed}.seed{k}.json")
