@@ -33,7 +33,7 @@ all multi-effect trials; trials: all trials of the run)::
 
     .venv/bin/python bench/bench_concealed.py [--seeds 2] [--width 640] [--frames 8] [--foreign-seeds 1]
         [--physical-seeds 1] [--multi 2] [--effects a,b,...] [--severities mild,strong] [--controls 3]
-        [--no-pairs] [--out-dir DIR]
+        [--no-pairs] [--out-dir DIR] [--docs]
 
 Run it in the background (``nohup ... &``): a trial takes 1-3 minutes on a 2-core machine.
 """
@@ -210,6 +210,10 @@ def run_trial(t, args) -> dict:
         diag = diagnose_bag(bag, k=args.frames, seed=0, **diagnose_kwargs(args))
         t_diag = time.perf_counter() - t0
         doc = diag.to_json()
+        if args.docs:
+            docs = Path(args.out_dir) / "docs"
+            docs.mkdir(parents=True, exist_ok=True)
+            (docs / f"{key(t)}.json").write_text(json.dumps(doc))
         ceiling = twin_ceiling(bag, twin, doc, args.frames) if twin else None
     truth = truth_of(t)
     pred = [v["effect"] for v in doc["verdict"]]
@@ -388,6 +392,7 @@ def main():
     ap.add_argument("--max-candidates", type=int, default=3)
     ap.add_argument("--out-dir", default="/tmp/uw_sil-concealed")
     ap.add_argument("--only-summary", action="store_true", help="print the summary of results.jsonl")
+    ap.add_argument("--docs", action="store_true", help="keep each trial's diagnosis document in OUT_DIR/docs")
     args = ap.parse_args()
     out = Path(args.out_dir)
     out.mkdir(parents=True, exist_ok=True)
