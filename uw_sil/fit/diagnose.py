@@ -1066,7 +1066,7 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
         text = judge.explain(vals, words, sigs.get(e), camera=job.camera)
         pins = a.get("pinned") or {}
         if pins and all(abs(vals.get(n, np.inf) - v) < 1e-9 for n, v in pins["values"].items()):
-            text += (f" — held at the nearest physically possible values ("
+            text += (" — held at the nearest physically possible values ("
                      + ", ".join(f"{n} {v:.3g}" for n, v in pins["values"].items())
                      + f"): fitted freely, {pins['because']}")
         if doubts:
