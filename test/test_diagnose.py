@@ -767,10 +767,11 @@ def test_backward_elimination_keeps_effects_that_help_only_together(monkeypatch,
 
     def model(effects):
         effects = tuple(e for e in (A, C, F) if e in effects)
-        # the least-squares residual a hair lower with each effect: it agrees with θ, and is no evidence itself
+        # the least-squares residual 1 % lower with each effect: it agrees with θ (beyond the fits' run-to-run
+        # spread), and is no evidence itself (within its margin)
         return Current(effects=effects, values={e: {} for e in effects}, base=np.zeros(7), theta_fit=0.9,
                        sel_pf=np.asarray(held[frozenset(effects)], float),
-                       ls_sel_E=np.full(4, 1.0 + 0.001 * (3 - len(effects))))
+                       ls_sel_E=np.full(4, 1.0 + 0.01 * (3 - len(effects))))
 
     monkeypatch.setattr(dg, "_without_one", lambda shared, e: (model(set(shared[1].effects) - {e}), 0.0))
 
@@ -1139,12 +1140,16 @@ def test_a_theta_gain_is_not_taken_where_the_least_squares_fit_does_not_lower_th
     """θ's region histograms count pixels in bins: in a dark frame a brightness change far below the noise moves
     many across a bin edge (a foreign strong β_B≠β_D trial: a camera response at nearly its identity gained +0.0064
     held-out θ while its least-squares fit raised the held-out residual by 0.5 %). For the effects whose residual
-    speaks, a θ gain beyond its margin is taken only where that fit lowers the residual at all; the others (forward
-    scatter: θ sees its edges) and refits without a least-squares fit are judged by θ alone."""
+    speaks, a θ gain beyond its margin is taken only where that fit lowers the residual at all, i.e. by more than
+    the least-squares fits' run-to-run spread (a physical dive: a camera response repeating the lamps' tint
+    lowered it by 0.01 % and was named); the others (forward scatter: θ sees its edges) and refits without a
+    least-squares fit are judged by θ alone."""
     from types import SimpleNamespace
 
     from uw_sil.fit.judges import JUDGES
+    from uw_sil.fit.judges.base import RESIDUAL_SPREAD
 
+    assert 0 < RESIDUAL_SPREAD < 0.01
     current = SimpleNamespace(sel_pf=np.array([0.90, 0.91, 0.92, 0.93]))
     r = SimpleNamespace(sel_pf=current.sel_pf + 0.0064, extra={})
     for e in ("camera_response", "vignetting", "artificial_light", "backscatter_coefficient"):
@@ -1152,6 +1157,9 @@ def test_a_theta_gain_is_not_taken_where_the_least_squares_fit_does_not_lower_th
         assert j.residual_evidence
         assert j.accept(r, current, 0.003, (-0.005, 0.02))[0] is False, e
         assert j.accept(r, current, 0.003, (0.0, 0.02))[0] is False, e
+        assert j.accept(r, current, 0.003, (0.0001, 0.02))[0] is False, e      # 402's camera response
+        assert j.accept(r, current, 0.003, (RESIDUAL_SPREAD, 0.02))[0] is False, e
+        assert j.accept(r, current, 0.003, (1.5 * RESIDUAL_SPREAD, 0.02))[0] is True, e
         assert j.accept(r, current, 0.003, (0.01, 0.02)) == (True, pytest.approx(0.0064 / 0.003), "theta"), e
         assert j.accept(r, current, 0.003, None)[0] is True, e
         assert j.accept(r, current, 0.01, (0.01, 0.02))[0] is False, e        # θ below its margin: as before
