@@ -7,7 +7,7 @@ import numpy as np
 
 from ._shared.fileio import atomic_path
 
-__all__ = ["contact_sheet", "depth_image", "pyplot", "save_figure"]
+__all__ = ["contact_sheet", "depth_image", "display_gain", "gain_words", "pyplot", "save_figure"]
 
 
 def pyplot():
@@ -28,6 +28,30 @@ def save_figure(fig, path, dpi: int = 110) -> Path:
     finally:
         pyplot().close(fig)
     return Path(path)
+
+
+#: Largest brightening of a figure's images (deep-sea frames lit by the vehicle's lamps sit at a few grey levels).
+MAX_DISPLAY_GAIN = 16
+
+
+def display_gain(image01, target: float = 0.7) -> int:
+    """Brightening for showing a dark frame (values 0-1): the power of two, 1 to :data:`MAX_DISPLAY_GAIN`, that
+    lifts the frame's 99.5th percentile closest to ``target`` without passing it. A deep-sea frame whose panel
+    sits at 5-20 grey levels is black on a screen; the same gain on the recording and on its simulations keeps
+    them comparable, and the figure says it (:func:`gain_words`). Never a darkening, so frames that are bright
+    already are shown as they are."""
+    a = np.asarray(image01, np.float32)
+    a = a[np.isfinite(a)]
+    p = float(np.percentile(a, 99.5)) if a.size else 0.0
+    if p <= 0.0:
+        return MAX_DISPLAY_GAIN
+    k = int(np.floor(np.log2(target / p))) if target > p else 0
+    return int(2 ** min(max(k, 0), int(np.log2(MAX_DISPLAY_GAIN))))
+
+
+def gain_words(gain: int) -> str:
+    """A figure title's note of :func:`display_gain` ("" at 1)."""
+    return f", shown ×{gain}" if gain > 1 else ""
 
 
 def depth_image(depth: np.ndarray) -> np.ma.MaskedArray:

@@ -168,8 +168,40 @@ class Diagnosis:
                 continue
             lines.append(f"  round {c.get('round', 1)}: {c.get('model', 'base')} + {c['effect']:<24s} held-out θ "
                          f"{c['theta_heldout']:.4f} (Δ {c['delta_heldout']:+.4f}, margin {c.get('margin', 0):.4f})"
-                         + (" accepted" if c.get("accepted") else ""))
+                         + _outcome_words(c, self.selection))
         return lines
+
+
+def _outcome_words(c: dict, selection: list) -> str:
+    """What became of a round's candidate, for the summary: nothing where it did not beat its margin; else by which
+    held-out evidence it did, and whether it was the round's choice (a row accepted by the held-out residual shows a
+    θ change of 0 where its θ refit kept the effect neutral: the residual numbers say why it passed)."""
+    if not c.get("accepted"):
+        if c.get("declined"):
+            return " declined (its least-squares fit lowers held-out θ)"
+        if not c.get("delta_heldout", 0.0) > c.get("margin", np.inf):
+            return ""
+        # a θ gain beyond the margin that was not taken: say by which rule (:meth:`~.judges.base.Judge.accept`)
+        if c.get("criterion") == "statistic":
+            return " not named: judged by its held-out statistics"
+        if (c.get("fit") or {}).get("neutral"):
+            return " not taken: its fit holds the effect neutral (the gain is the current model's own)"
+        h = c.get("heldout_residual") or {}
+        if h.get("improvement") is not None:
+            imp = 100 * h["improvement"]
+            moves = f"lowers the held-out residual by {imp:.1f} %" if imp >= 0 else f"raises it by {-imp:.1f} %"
+            return f" not taken: its least-squares fit {moves}, not beyond the fits' spread"
+        return " not taken"
+    if c.get("full_refit"):
+        return " chosen (refitted with the full budget)"
+    if c.get("criterion") == "statistic":
+        return " named (held-out statistics)"
+    h = c.get("heldout_residual") or {}
+    how = (f"held-out residual {100 * h['improvement']:.0f} % lower, margin {100 * h['margin']:.0f} %"
+           if c.get("criterion") == "residual" and h.get("improvement") is not None else "held-out θ")
+    chosen = [s.get("chosen") for s in selection if s.get("round") == c.get("round") and s.get("chosen")]
+    return f" beyond its margin ({how}): " + ("chosen" if c["effect"] in chosen else
+                                             f"not chosen ({chosen[0]} was)" if chosen else "not chosen")
 
 
 #: Keys of the document that hold times (and where the recording was read): what differs between two runs

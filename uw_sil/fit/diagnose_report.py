@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from .._shared.fileio import write_text_atomic
-from ..viz import pyplot, save_figure
+from ..viz import display_gain, gain_words, pyplot, save_figure
 
 __all__ = ["write_diagnosis_report"]
 
@@ -39,11 +39,12 @@ def residual_figure(diag):
     for ax, rf, s, r in zip(axes, rfs, sims, res):
         fr = rf.frame
         tag = " (held out)" if fr.role == "heldout" else ""
-        ax[0].imshow(np.clip(rf.image / 255.0, 0, 1))
-        ax[0].set_title(f"recording #{fr.index}, {fr.range_median:.2f} m{tag}", fontsize=8)
-        ax[1].imshow(np.clip(s, 0, 1))
-        ax[1].set_title("base model (fitted)", fontsize=8)
-        ax[2].imshow(np.clip(_lum(rf.image) / 255.0, 0, 1), cmap="gray")
+        g = display_gain(rf.image / 255.0)          # (the same on the recording and its simulation)
+        ax[0].imshow(np.clip(g * rf.image / 255.0, 0, 1))
+        ax[0].set_title(f"recording #{fr.index}, {fr.range_median:.2f} m{tag}{gain_words(g)}", fontsize=8)
+        ax[1].imshow(np.clip(g * s, 0, 1))
+        ax[1].set_title(f"base model (fitted){gain_words(g)}", fontsize=8)
+        ax[2].imshow(np.clip(g * _lum(rf.image) / 255.0, 0, 1), cmap="gray")
         L = _lum(r)
         im = ax[2].imshow(np.ma.masked_where(np.abs(L) < 0.1 * lim, L), cmap="coolwarm", vmin=-lim, vmax=lim,
                           alpha=0.8)
@@ -136,13 +137,15 @@ def models_figure(diag):
     if key is not None:
         ext = fits[key]["model"].like(rows)
     for k, (ax, rf) in enumerate(zip(axes, rows)):
-        ax[0].imshow(np.clip(rf.image / 255.0, 0, 1))
-        ax[0].set_title(f"recording #{rf.frame.index} (held out, {rf.frame.range_median:.2f} m)", fontsize=8)
-        ax[1].imshow(np.clip(base_sim(rf, F["base_x"], F["fog"]), 0, 1))
-        ax[1].set_title("base model", fontsize=8)
+        g = display_gain(rf.image / 255.0)          # (the same on the recording and its simulations)
+        ax[0].imshow(np.clip(g * rf.image / 255.0, 0, 1))
+        ax[0].set_title(f"recording #{rf.frame.index} (held out, {rf.frame.range_median:.2f} m){gain_words(g)}",
+                        fontsize=8)
+        ax[1].imshow(np.clip(g * base_sim(rf, F["base_x"], F["fog"]), 0, 1))
+        ax[1].set_title(f"base model{gain_words(g)}", fontsize=8)
         if ext is not None:
-            ax[2].imshow(np.clip(ext.simulate(k, fits[key]["x"][None])[0], 0, 1))
-            ax[2].set_title(f"extended model: {key}", fontsize=8)
+            ax[2].imshow(np.clip(g * ext.simulate(k, fits[key]["x"][None])[0], 0, 1))
+            ax[2].set_title(f"extended model: {key}{gain_words(g)}", fontsize=8)
         else:
             ax[2].text(0.5, 0.5, "no effect accepted", ha="center", va="center")
         for a in ax:

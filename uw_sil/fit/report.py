@@ -17,7 +17,7 @@ import numpy as np
 
 from .._shared.fileio import write_text_atomic
 from ..sim.params import RGB_NAMES, UNITS
-from ..viz import pyplot, save_figure
+from ..viz import display_gain, gain_words, pyplot, save_figure
 
 __all__ = ["progression_figure", "convergence_figure", "residual_figure", "write_report"]
 
@@ -51,12 +51,14 @@ def progression_figure(fit, frame: int = None, count: int = 5):
     o = fit.optim
     its = _snapshot_iterations(len(o.history_best_x), count)
     fig, axes = plt.subplots(1, len(its) + 1, figsize=(3.2 * (len(its) + 1), 2.9))
-    axes[0].imshow(fit.frames[frame].image)
-    axes[0].set_title(f"real frame #{fit.frames[frame].index}", fontsize=9)
+    real = fit.frames[frame].image.astype(np.float32) / 255.0
+    g = display_gain(real)                  # (the same on the frame and every simulation of it)
+    axes[0].imshow(np.clip(g * real, 0, 1))
+    axes[0].set_title(f"real frame #{fit.frames[frame].index}{gain_words(g)}", fontsize=9)
     for ax, t in zip(axes[1:], its):
         x = np.asarray(o.history_best_x[t])
         sim = simulate(x)
-        ax.imshow(np.clip(sim, 0, 1))
+        ax.imshow(np.clip(g * sim, 0, 1))
         ax.set_title(f"t = {t + 1}, θ = {o.history_best_f[t]:.4f}", fontsize=9)
     for ax in axes:
         ax.set_xticks([])
@@ -104,8 +106,9 @@ def residual_figure(fit, frame: int = None):
     res = real - sim
     lim = max(0.05, float(np.percentile(np.abs(res), 99.5)))
     fig, axes = plt.subplots(1, 5, figsize=(17, 3.1))
-    axes[0].imshow(np.clip(sim, 0, 1))
-    axes[0].set_title(f"fitted simulation, frame #{fit.frames[frame].index}", fontsize=9)
+    g = display_gain(real)
+    axes[0].imshow(np.clip(g * sim, 0, 1))
+    axes[0].set_title(f"fitted simulation, frame #{fit.frames[frame].index}{gain_words(g)}", fontsize=9)
     lum = res @ np.array([0.299, 0.587, 0.114], np.float32)
     for ax, img, name in zip(axes[1:], [lum, res[..., 0], res[..., 1], res[..., 2]], ["luminance", "R", "G", "B"]):
         im = ax.imshow(img, cmap="RdBu_r", vmin=-lim, vmax=lim)
