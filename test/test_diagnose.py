@@ -769,7 +769,8 @@ def test_summary_says_what_became_of_each_candidate():
     refused = {**resp, "round": 2, "accepted": False, "criterion": "theta", "delta_heldout": 0.0044, "margin": 0.003}
     assert _outcome_words({**refused, "heldout_residual": {"improvement": 0.0001}}, sel) == (
         " not taken: its least-squares fit lowers the held-out residual by 0.0 %, not beyond the fits' spread")
-    assert "raises the held-out residual by 1.5 %" in _outcome_words({**refused, "heldout_residual": {"improvement": -0.015}}, sel)
+    raised = {**refused, "heldout_residual": {"improvement": -0.015}}
+    assert "raises the held-out residual by 1.5 %" in _outcome_words(raised, sel)
     assert "neutral" in _outcome_words({**refused, "heldout_residual": {}, "fit": {"neutral": True}}, sel)
     assert _outcome_words({**refused, "delta_heldout": 0.002}, sel) == ""
 

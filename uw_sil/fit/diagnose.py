@@ -189,7 +189,7 @@ def _outcome_words(c: dict, selection: list) -> str:
         h = c.get("heldout_residual") or {}
         if h.get("improvement") is not None:
             imp = 100 * h["improvement"]
-            moves = f"lowers the held-out residual by {imp:.1f} %" if imp >= 0 else f"raises the held-out residual by {-imp:.1f} %"
+            moves = f"{'lowers' if imp >= 0 else 'raises'} the held-out residual by {abs(imp):.1f} %"
             return f" not taken: its least-squares fit {moves}, not beyond the fits' spread"
         return " not taken"
     if c.get("full_refit"):
