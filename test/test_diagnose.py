@@ -747,7 +747,7 @@ def test_summary_says_what_became_of_each_candidate():
     """A candidate that beat its margin by the held-out residual while its θ refit stayed neutral (Δθ 0) was
     printed "accepted" although another effect was chosen that round (physical dive 402: camera response, 62 %
     less residual, beside the lamps): the summary names the evidence and the round's choice."""
-    from uw_sil.fit.diagnose import _outcome_words
+    from uw_sil.fit.diagnose import outcome_words
 
     sel = [{"round": 1, "chosen": "artificial_light"}, {"round": 2, "chosen": None}]
     res = {"improvement": 0.62, "margin": 0.41}
@@ -755,24 +755,24 @@ def test_summary_says_what_became_of_each_candidate():
             "heldout_residual": {"improvement": 0.85, "margin": 0.15}}
     resp = {"round": 1, "effect": "camera_response", "accepted": True, "criterion": "residual",
             "heldout_residual": res}
-    assert _outcome_words(lamp, sel) == " beyond its margin (held-out residual 85 % lower, margin 15 %): chosen"
-    assert _outcome_words(resp, sel) == (" beyond its margin (held-out residual 62 % lower, margin 41 %): "
+    assert outcome_words(lamp, sel) == " beyond its margin (held-out residual 85 % lower, margin 15 %): chosen"
+    assert outcome_words(resp, sel) == (" beyond its margin (held-out residual 62 % lower, margin 41 %): "
                                          "not chosen (artificial_light was)")
-    assert _outcome_words({**lamp, "full_refit": True}, sel) == " chosen (refitted with the full budget)"
-    assert _outcome_words({**resp, "round": 2, "accepted": False}, sel) == ""
-    assert "declined" in _outcome_words({**resp, "accepted": False, "declined": {"theta_fall": 0.01}}, sel)
-    assert _outcome_words({"round": 3, "effect": "marine_snow", "accepted": True, "criterion": "statistic"},
+    assert outcome_words({**lamp, "full_refit": True}, sel) == " chosen (refitted with the full budget)"
+    assert outcome_words({**resp, "round": 2, "accepted": False}, sel) == ""
+    assert "declined" in outcome_words({**resp, "accepted": False, "declined": {"theta_fall": 0.01}}, sel)
+    assert outcome_words({"round": 3, "effect": "marine_snow", "accepted": True, "criterion": "statistic"},
                           sel) == " named (held-out statistics)"
-    assert _outcome_words({**resp, "criterion": "theta"}, sel).startswith(" beyond its margin (held-out θ): not")
+    assert outcome_words({**resp, "criterion": "theta"}, sel).startswith(" beyond its margin (held-out θ): not")
     # a θ gain beyond the margin that was not taken says by which rule (402, round 2: camera response +0.0044
     # against 0.0030, its least-squares fit 0.01 % less residual)
     refused = {**resp, "round": 2, "accepted": False, "criterion": "theta", "delta_heldout": 0.0044, "margin": 0.003}
-    assert _outcome_words({**refused, "heldout_residual": {"improvement": 0.0001}}, sel) == (
+    assert outcome_words({**refused, "heldout_residual": {"improvement": 0.0001}}, sel) == (
         " not taken: its least-squares fit lowers the held-out residual by 0.0 %, not beyond the fits' spread")
     raised = {**refused, "heldout_residual": {"improvement": -0.015}}
-    assert "raises the held-out residual by 1.5 %" in _outcome_words(raised, sel)
-    assert "neutral" in _outcome_words({**refused, "heldout_residual": {}, "fit": {"neutral": True}}, sel)
-    assert _outcome_words({**refused, "delta_heldout": 0.002}, sel) == ""
+    assert "raises the held-out residual by 1.5 %" in outcome_words(raised, sel)
+    assert "neutral" in outcome_words({**refused, "heldout_residual": {}, "fit": {"neutral": True}}, sel)
+    assert outcome_words({**refused, "delta_heldout": 0.002}, sel) == ""
 
 
 @pytest.mark.parametrize("together", [True, False])

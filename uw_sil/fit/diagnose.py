@@ -168,11 +168,11 @@ class Diagnosis:
                 continue
             lines.append(f"  round {c.get('round', 1)}: {c.get('model', 'base')} + {c['effect']:<24s} held-out θ "
                          f"{c['theta_heldout']:.4f} (Δ {c['delta_heldout']:+.4f}, margin {c.get('margin', 0):.4f})"
-                         + _outcome_words(c, self.selection))
+                         + outcome_words(c, self.selection))
         return lines
 
 
-def _outcome_words(c: dict, selection: list) -> str:
+def outcome_words(c: dict, selection: list) -> str:
     """What became of a round's candidate, for the summary: nothing where it did not beat its margin; else by which
     held-out evidence it did, and whether it was the round's choice (a row accepted by the held-out residual shows a
     θ change of 0 where its θ refit kept the effect neutral: the residual numbers say why it passed)."""

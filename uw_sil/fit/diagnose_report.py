@@ -5,8 +5,8 @@
 - ``signatures.png``: the residual against range (object log-ratio and additive bias per frame), against
   the image radius (water log-ratio profiles), against intensity (residual per simulated grey level),
   and against spatial frequency (power-spectrum ratio recording/simulation per frame);
-- ``models.png``: for held-out frames, the recording next to the base simulation and the simulation of
-  the final (extended) model;
+- ``models.png``: for held-out frames, the recording next to the base simulation, the simulation of the final
+  (extended) model and what the final model leaves over (luminance, signed, on the base model's scale);
 - ``heldout.png``: held-out θ of the base model and of each refitted candidate (per frame and mean, with
   the acceptance margin);
 - ``index.html``: verdict, candidates, where the mismatch is, signature numbers, timing.
@@ -132,7 +132,7 @@ def models_figure(diag):
     from .residuals import base_sim
 
     rows = held[:3]
-    fig, axes = plt.subplots(len(rows), 3, figsize=(10, 2.6 * len(rows)), squeeze=False)
+    fig, axes = plt.subplots(len(rows), 4, figsize=(13.5, 2.6 * len(rows)), squeeze=False)
     ext = None
     if key is not None:
         ext = fits[key]["model"].like(rows)
@@ -141,13 +141,24 @@ def models_figure(diag):
         ax[0].imshow(np.clip(g * rf.image / 255.0, 0, 1))
         ax[0].set_title(f"recording #{rf.frame.index} (held out, {rf.frame.range_median:.2f} m){gain_words(g)}",
                         fontsize=8)
-        ax[1].imshow(np.clip(g * base_sim(rf, F["base_x"], F["fog"]), 0, 1))
+        sb = base_sim(rf, F["base_x"], F["fog"])
+        ax[1].imshow(np.clip(g * sb, 0, 1))
         ax[1].set_title(f"base model{gain_words(g)}", fontsize=8)
+        se = sb
         if ext is not None:
-            ax[2].imshow(np.clip(g * ext.simulate(k, fits[key]["x"][None])[0], 0, 1))
+            se = ext.simulate(k, fits[key]["x"][None])[0]
+            ax[2].imshow(np.clip(g * se, 0, 1))
             ax[2].set_title(f"extended model: {key}{gain_words(g)}", fontsize=8)
         else:
             ax[2].text(0.5, 0.5, "no effect accepted", ha="center", va="center")
+        # what the final model leaves over, on the base model's colour scale (lighter: less left)
+        rb, re_ = _lum(rf.image - 255.0 * sb), _lum(rf.image - 255.0 * se)
+        lim = max(5.0, float(np.percentile(np.abs(rb), 99)))
+        im = ax[3].imshow(re_, cmap="coolwarm", vmin=-lim, vmax=lim)
+        rms = [float(np.sqrt(np.mean(r * r))) for r in (rb, re_)]
+        ax[3].set_title(f"left over: real − {'extended' if ext is not None else 'base'} (rms {rms[1]:.1f}; base "
+                        f"{rms[0]:.1f} DN)", fontsize=8)
+        fig.colorbar(im, ax=ax[3], fraction=0.035, pad=0.02)
         for a in ax:
             a.set_xticks([])
             a.set_yticks([])
@@ -219,6 +230,7 @@ def _fmt(v):
 
 def write_diagnosis_report(diag, out_dir, title: str = "uw_sil mismatch diagnosis") -> Path:
     """Write the figures and ``index.html`` into ``out_dir``; returns the page's path."""
+    from .diagnose import outcome_words
     from .judges.sensor_noise import camera_noise_words
 
     out = Path(out_dir)
@@ -261,9 +273,11 @@ def write_diagnosis_report(diag, out_dir, title: str = "uw_sil mismatch diagnosi
                         ["round", "model", "θ held-out", "effects refitted", "chosen", "s"]))
     parts.append("<h2>Candidates (refitted jointly with the round's model, judged on held-out frames)</h2>")
     parts.append(_table([(c.get("round", 1), c.get("model", "base"), c["effect"], c["theta_train"], c["theta_heldout"],
-                          c["delta_heldout"], c.get("margin", 0.0), "yes" if c.get("accepted") else "no")
+                          c["delta_heldout"], c.get("margin", 0.0), "yes" if c.get("accepted") else "no",
+                          "" if c.get("elimination") else outcome_words(c, d.get("selection", [])).strip())
                          for c in d["candidates"]],
-                        ["round", "model", "+ effect", "θ train", "θ held-out", "Δ held-out", "margin", "beats margin"]))
+                        ["round", "model", "+ effect", "θ train", "θ held-out", "Δ held-out", "margin", "beats margin",
+                         "outcome"]))
     parts.append('<h2>Base vs extended model (held-out frames)</h2><img src="models.png" width="900">')
     parts.append("<h2>Where the mismatch is</h2>")
     parts.append(_table([(r["kind"], r["name"], r["pixels"], r["rms"], r["mean"], r["share"])
