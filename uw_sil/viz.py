@@ -61,7 +61,8 @@ def depth_image(depth: np.ndarray) -> np.ma.MaskedArray:
 
 
 def contact_sheet(rows, title: str = ""):
-    """A grid: one row per frame with the recorded (real-like) image, clean render, depth and label mask.
+    """A grid: one row per frame with the recorded (real-like) image (brightened when dark, :func:`display_gain`),
+    clean render, depth and label mask.
 
     Parameters
     ----------
@@ -74,8 +75,9 @@ def contact_sheet(rows, title: str = ""):
         raise ValueError("contact sheet needs at least one frame")
     fig, axes = plt.subplots(len(rows), 4, figsize=(13, 2.6 * len(rows)), squeeze=False)
     for ax_row, (label, img, rr) in zip(axes, rows):
-        ax_row[0].imshow(img)
-        ax_row[0].set_title(f"recorded {label}", fontsize=9)
+        g = display_gain(np.asarray(img, np.float32) / 255.0)
+        ax_row[0].imshow(np.clip(g * (np.asarray(img, np.float32) / 255.0), 0, 1))
+        ax_row[0].set_title(f"recorded {label}{gain_words(g)}", fontsize=9)
         ax_row[1].imshow(np.clip(rr.rgb, 0, 1))
         ax_row[1].set_title("clean render", fontsize=9)
         im = ax_row[2].imshow(depth_image(rr.depth), cmap="viridis")
