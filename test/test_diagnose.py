@@ -773,6 +773,9 @@ def test_summary_says_what_became_of_each_candidate():
     assert "raises the held-out residual by 1.5 %" in outcome_words(raised, sel)
     assert "neutral" in outcome_words({**refused, "heldout_residual": {}, "fit": {"neutral": True}}, sel)
     assert outcome_words({**refused, "delta_heldout": 0.002}, sel) == ""
+    pose = {"round": 1, "effect": "pose_error", "accepted": False, "criterion": "residual", "delta_heldout": 0.004,
+            "margin": 0.003, "heldout_statistic": {"improvement": 0.08, "margin": 0.02, "shift_px": 0.1}}
+    assert outcome_words(pose, sel) == " not taken: the correction moves the image by 0.10 px, below 0.25 px"
 
 
 @pytest.mark.parametrize("together", [True, False])

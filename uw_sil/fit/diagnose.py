@@ -186,6 +186,12 @@ def outcome_words(c: dict, selection: list) -> str:
             return " not named: judged by its held-out statistics"
         if (c.get("fit") or {}).get("neutral"):
             return " not taken: its fit holds the effect neutral (the gain is the current model's own)"
+        shift = (c.get("heldout_statistic") or {}).get("shift_px")
+        if shift is not None:
+            from .judges.pose_error import MIN_SHIFT_PX
+
+            if shift < MIN_SHIFT_PX:
+                return f" not taken: the correction moves the image by {shift:.2f} px, below {MIN_SHIFT_PX} px"
         h = c.get("heldout_residual") or {}
         if h.get("improvement") is not None:
             imp = 100 * h["improvement"]
