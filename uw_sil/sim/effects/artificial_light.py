@@ -41,7 +41,9 @@ object) casts no shadow here, and a seafloor does not shadow itself (a plane can
 side from its own points). The binary test is averaged over 3x3 pixels of the same surface (soft edges:
 a lamp of a few centimetres); on a reduced frame it runs at twice its resolution (``Geometry.fine``) and is
 averaged over each block, since a lever's shadow is a few full-resolution pixels wide (a seafloor the model adds
-and a pose it corrects are applied to that view too). The lamp positions are
+and a pose it corrects are applied to that view too; the least-squares fit of a pose correction, which warps
+the view at every evaluation, carries the shadows of the recorded view through its warps instead:
+:func:`uw_sil.sim.effects.pose_error.carrying_shadows`). The lamp positions are
 rounded to 5 cm for it, so that the candidates of a fit share their shadows: a lamp housing is 5-10 cm across
 (its penumbra is wider than what 2.5 cm of position moves), and at 1.3 m moving the lamp by 2.5 cm in x and y
 changed 7 % of the shadows' mass (2-4 % of the panel is in shadow). No parameter: shadows follow from the
@@ -578,7 +580,22 @@ class ArtificialLight(Effect):
     def _visibility(st, L) -> np.ndarray:
         """(H, W) share of the lamp at ``L`` seen from each surface point (1 on pixels without a hit): the
         screen-space shadow test of the module's docstring at the shadow grid's resolution, averaged over the hit
-        pixels of each block."""
+        pixels of each block. A geometry warped with the shadows carried
+        (:func:`uw_sil.sim.effects.pose_error.carrying_shadows`) takes those of the geometry it was warped from,
+        at its source pixels (tested once per lamp position there, for every warp of a fit)."""
+        carried = getattr(st.get("geom"), "carried_from", None)
+        if carried is not None:
+            src, idx, hit = carried
+            own = src.__dict__.setdefault("_lamp_shadows", {"geom": src, "X": None, "vis": {}})
+            key = tuple(map(float, L))
+            vis = own["vis"].get(key)
+            if vis is None:
+                if own["X"] is None:
+                    own["X"] = [np.ascontiguousarray(src.X[..., k]) for k in range(3)]
+                if len(own["vis"]) >= 64:
+                    own["vis"].clear()
+                vis = own["vis"][key] = ArtificialLight._visibility(own, L)
+            return np.where(hit, vis.ravel()[idx], np.float32(1.0)).astype(np.float32)
         g = st.get("shadow")
         if g is None:
             g = st["shadow"] = _shadow_grid(st["geom"], st["X"])

@@ -21,7 +21,9 @@ corrected geometry (bias only).
 """
 from __future__ import annotations
 
+import contextlib
 import functools
+import threading
 
 import cv2
 import numpy as np
@@ -33,6 +35,26 @@ Z_FAR = 1.0e4
 
 def rotation_matrix(rvec) -> np.ndarray:
     return cv2.Rodrigues(np.asarray(rvec, dtype=np.float64).reshape(3, 1))[0]
+
+
+_CARRY = threading.local()
+
+
+@contextlib.contextmanager
+def carrying_shadows():
+    """Within it (this thread), a warped geometry carries the lamps' cast shadows of the geometry it was warped from
+    (``carried_from``: that geometry and, per pixel, the source pixel and whether it found one), as the warp
+    carries the labels, instead of the lamps testing the warped geometry again
+    (:meth:`uw_sil.sim.effects.artificial_light.ArtificialLight._visibility`). For the least-squares fit of a pose
+    correction: every evaluation warps the geometry, and the shadow test of each warped view was about 10 of
+    the 14 s of a lamp-lit pose refit. An approximation: the lamps move with the camera against the scene, so for
+    a correction of a few centimetres the shadows on the surfaces move by a fraction of that."""
+    before = getattr(_CARRY, "on", False)
+    _CARRY.on = True
+    try:
+        yield
+    finally:
+        _CARRY.on = before
 
 
 def warp_geometry(geom, R: np.ndarray, t: np.ndarray, iterations: int = 4, colour: bool = True):
@@ -104,8 +126,11 @@ def warp_geometry(geom, R: np.ndarray, t: np.ndarray, iterations: int = 4, colou
         pose = D @ geom.pose
     # the finer view of a reduced frame (the lamps' shadows) is seen from the moved camera too, when it is read
     fine = geom.finer_view_through(functools.partial(warp_geometry, R=R, t=t, iterations=iterations, colour=False))
-    return geom.replace(rgb=rgb.astype(np.float32), depth=depth_new, range_m=range_new.astype(np.float32),
-                        labels=labels, part_ids=part_ids, pose=pose, X=X, normals=normals, fine=fine)
+    out = geom.replace(rgb=rgb.astype(np.float32), depth=depth_new, range_m=range_new.astype(np.float32),
+                       labels=labels, part_ids=part_ids, pose=pose, X=X, normals=normals, fine=fine)
+    if colour and getattr(_CARRY, "on", False):
+        out.carried_from = (getattr(geom, "carried_from", None) or (geom,))[0], idx, hit
+    return out
 
 
 class PoseError(Effect):
