@@ -320,6 +320,12 @@ def test_a_pose_fit_carries_the_lamps_shadows_through_its_warps():
         twice = warp_geometry(moved, R, t)
     src, idx, hit = moved.carried_from
     assert src is geom and twice.carried_from[0] is geom
+    # a warp of a warp: its source pixels are those of the first view (the second warp's own, composed)
+    with carrying_shadows():
+        plain = moved.replace(X=moved.X, normals=moved.normals)          # the same view, nothing carried
+        again = warp_geometry(plain, R, t)
+    np.testing.assert_array_equal(twice.carried_from[1], idx.ravel()[again.carried_from[1]])
+    np.testing.assert_array_equal(twice.carried_from[2], again.carried_from[2] & hit.ravel()[again.carried_from[1]])
     v_src = eff._visibility(eff.prepare(geom, cam), L)
     v_moved = eff._visibility(eff.prepare(moved, cam), L)
     np.testing.assert_array_equal(v_moved[hit], v_src.ravel()[idx[hit]])

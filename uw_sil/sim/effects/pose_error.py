@@ -129,7 +129,12 @@ def warp_geometry(geom, R: np.ndarray, t: np.ndarray, iterations: int = 4, colou
     out = geom.replace(rgb=rgb.astype(np.float32), depth=depth_new, range_m=range_new.astype(np.float32),
                        labels=labels, part_ids=part_ids, pose=pose, X=X, normals=normals, fine=fine)
     if colour and getattr(_CARRY, "on", False):
-        out.carried_from = (getattr(geom, "carried_from", None) or (geom,))[0], idx, hit
+        prev = getattr(geom, "carried_from", None)
+        if prev is None:
+            out.carried_from = geom, idx, hit
+        else:                           # a warp of a warp: its source pixels in the first view
+            src, idx0, hit0 = prev
+            out.carried_from = src, idx0.ravel().take(idx), hit & hit0.ravel().take(idx)
     return out
 
 
