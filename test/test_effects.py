@@ -314,7 +314,7 @@ def test_a_pose_fit_carries_the_lamps_shadows_through_its_warps():
     L = np.array([0.5, 0.0, 0.0], np.float32)
     R, t = rotation_matrix((0.0, 0.01, 0.0)), np.array([0.05, 0.0, 0.0])
     own = warp_geometry(geom, R, t)
-    assert getattr(own, "carried_from", None) is None
+    assert own.carried_from is None
     with carrying_shadows():
         moved = warp_geometry(geom, R, t)
         twice = warp_geometry(moved, R, t)
@@ -326,11 +326,11 @@ def test_a_pose_fit_carries_the_lamps_shadows_through_its_warps():
         again = warp_geometry(plain, R, t)
     np.testing.assert_array_equal(twice.carried_from[1], idx.ravel()[again.carried_from[1]])
     np.testing.assert_array_equal(twice.carried_from[2], again.carried_from[2] & hit.ravel()[again.carried_from[1]])
-    v_src = eff._visibility(eff.prepare(geom, cam), L)
-    v_moved = eff._visibility(eff.prepare(moved, cam), L)
+    v_src = eff._shadows(eff.prepare(geom, cam), L)
+    v_moved = eff._shadows(eff.prepare(moved, cam), L)
     np.testing.assert_array_equal(v_moved[hit], v_src.ravel()[idx[hit]])
     assert (v_moved[~hit] == 1).all() and (v_src < 0.5).sum() > 100
-    v_own = eff._visibility(eff.prepare(own, cam), L)
+    v_own = eff._shadows(eff.prepare(own, cam), L)
     differ = (np.abs(v_moved - v_own) > 0.5).mean()
     assert differ < 0.01, differ
 

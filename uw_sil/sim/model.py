@@ -77,6 +77,9 @@ class Geometry:
         pixels (the lamps' cast shadows of a handle a few pixels wide): they compute on it and average over
         each block. None: this geometry is the finest there is. May be given as a function that makes it,
         called when it is first read (a geometry effect's finer view costs nothing where no effect reads it).
+    carried_from : tuple or None
+        ``(source geometry, source pixel per pixel, found)`` of a view warped with the lamps' shadows carried
+        (:func:`uw_sil.sim.effects.pose_error.carrying_shadows`); None otherwise (not kept by :meth:`replace`).
     """
 
     def __init__(self, camera, rgb, depth, range_m, labels=None, part_ids=None, pose=None,
@@ -110,6 +113,7 @@ class Geometry:
         self._normals = normals
         self._rays = None
         self._fine = fine
+        self.carried_from = None
         if fine is not None and not callable(fine):
             self._check_fine(fine)
 

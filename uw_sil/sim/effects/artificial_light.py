@@ -573,29 +573,26 @@ class ArtificialLight(Effect):
         lamb = np.clip((nL - P["nX"]) / R, 0.0, 1.0)        # n . (L - X) / R
         # the shadows of a lamp position rounded to SHADOW_GRID, kept for many positions: a fit's candidates share them
         Lq = np.round(L / np.float32(SHADOW_GRID)) * np.float32(SHADOW_GRID)
-        S = self._cached(st, "_S", tuple(map(float, Lq)), lambda: self._visibility(st, Lq), entries=64)
+        S = self._cached(st, "_S", tuple(map(float, Lq)), lambda: self._shadows(st, Lq), entries=64)
         return cos_t, lamb, R * R, S.ravel()[idx], R - np.float32(R0)
+
+    def _shadows(self, st, L) -> np.ndarray:
+        """:meth:`_visibility` of the lamp at ``L``; for a geometry warped with the shadows carried
+        (:func:`uw_sil.sim.effects.pose_error.carrying_shadows`), that of the geometry it was warped from at the
+        source pixels, tested there once per lamp position for every warp of a fit."""
+        carried = st["geom"].carried_from
+        if carried is None:
+            return self._visibility(st, L)
+        src, idx, hit = carried
+        own = src.__dict__.setdefault("_lamp_shadows", {"geom": src, "X": None})     # (_shadow_grid makes X)
+        vis = self._cached(own, "_S", tuple(map(float, L)), lambda: self._visibility(own, L), entries=64)
+        return np.where(hit, vis.ravel()[idx], np.float32(1.0))
 
     @staticmethod
     def _visibility(st, L) -> np.ndarray:
         """(H, W) share of the lamp at ``L`` seen from each surface point (1 on pixels without a hit): the
         screen-space shadow test of the module's docstring at the shadow grid's resolution, averaged over the hit
-        pixels of each block. A geometry warped with the shadows carried
-        (:func:`uw_sil.sim.effects.pose_error.carrying_shadows`) takes those of the geometry it was warped from,
-        at its source pixels (tested once per lamp position there, for every warp of a fit)."""
-        carried = getattr(st.get("geom"), "carried_from", None)
-        if carried is not None:
-            src, idx, hit = carried
-            own = src.__dict__.setdefault("_lamp_shadows", {"geom": src, "X": None, "vis": {}})
-            key = tuple(map(float, L))
-            vis = own["vis"].get(key)
-            if vis is None:
-                if own["X"] is None:
-                    own["X"] = [np.ascontiguousarray(src.X[..., k]) for k in range(3)]
-                if len(own["vis"]) >= 64:
-                    own["vis"].clear()
-                vis = own["vis"][key] = ArtificialLight._visibility(own, L)
-            return np.where(hit, vis.ravel()[idx], np.float32(1.0)).astype(np.float32)
+        pixels of each block."""
         g = st.get("shadow")
         if g is None:
             g = st["shadow"] = _shadow_grid(st["geom"], st["X"])

@@ -45,7 +45,7 @@ def carrying_shadows():
     """Within it (this thread), a warped geometry carries the lamps' cast shadows of the geometry it was warped from
     (``carried_from``: that geometry and, per pixel, the source pixel and whether it found one), as the warp
     carries the labels, instead of the lamps testing the warped geometry again
-    (:meth:`uw_sil.sim.effects.artificial_light.ArtificialLight._visibility`). For the least-squares fit of a pose
+    (:meth:`uw_sil.sim.effects.artificial_light.ArtificialLight._shadows`). For the least-squares fit of a pose
     correction: every evaluation warps the geometry, and the shadow test of each warped view was about 10 of
     the 14 s of a lamp-lit pose refit. An approximation: the lamps move with the camera against the scene, so for
     a correction of a few centimetres the shadows on the surfaces move by a fraction of that."""
@@ -129,7 +129,7 @@ def warp_geometry(geom, R: np.ndarray, t: np.ndarray, iterations: int = 4, colou
     out = geom.replace(rgb=rgb.astype(np.float32), depth=depth_new, range_m=range_new.astype(np.float32),
                        labels=labels, part_ids=part_ids, pose=pose, X=X, normals=normals, fine=fine)
     if colour and getattr(_CARRY, "on", False):
-        prev = getattr(geom, "carried_from", None)
+        prev = geom.carried_from
         if prev is None:
             out.carried_from = geom, idx, hit
         else:                           # a warp of a warp: its source pixels in the first view
