@@ -196,7 +196,7 @@ def test_images_mode_on_a_folder(tmp_path):
     doc = json.loads(js.read_text())
     assert doc["mode"] == "images" and doc["candidates"] == []
     assert "vignetting" in [v["effect"] for v in doc["verdict"]]
-    assert {"forward_scatter", "pose_error", "unmodeled_geometry", "backscatter_coefficient"} == \
+    assert {"forward_scatter", "pose_error", "unmodeled_geometry", "backscatter_coefficient", "port_refraction"} == \
         {n["effect"] for n in doc["not_judged"]}
 
 

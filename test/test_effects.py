@@ -15,8 +15,8 @@ from uw_sil.sim.scene import facing_pose
 from uw_sil.sim.effects import DEFAULT_SEVERITY, EFFECT_ORDER, EFFECTS, STAGES, get_effect, parse_effects
 from uw_sil.sim.model import UnderwaterModel, effect_params_to_flat, flat_to_effect_params
 
-NAMES = {"artificial_light", "forward_scatter", "backscatter_coefficient", "vignetting", "sensor_noise",
-         "marine_snow", "camera_response", "unmodeled_geometry", "pose_error", "compression"}
+NAMES = {"artificial_light", "forward_scatter", "port_refraction", "backscatter_coefficient", "vignetting",
+         "sensor_noise", "marine_snow", "camera_response", "unmodeled_geometry", "pose_error", "compression"}
 P = UnderwaterParams(a=(0.35, 0.1, 0.08), b=(0.06, 0.3, 0.4), rho_f=0.05)
 
 

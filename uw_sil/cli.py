@@ -679,8 +679,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--end", type=float, default=1.2, help="range at the end of the approach [m]")
     s.add_argument("--effects", help="inject effects the base model lacks (recorded only in the truth sidecar): "
                    "'NAME[=mild|strong],...' (bare NAME: strong; NAME.PARAM=value overrides), NAME one of "
-                   "artificial_light, forward_scatter, backscatter_coefficient, vignetting, sensor_noise, "
-                   "marine_snow, camera_response, unmodeled_geometry, pose_error, compression")
+                   "artificial_light, forward_scatter, backscatter_coefficient, port_refraction, vignetting, "
+                   "sensor_noise, marine_snow, camera_response, unmodeled_geometry, pose_error, compression")
     s.add_argument("--contact-sheet", help="also write a PNG contact sheet here")
     s.add_argument("--force", action="store_true", help="overwrite an existing bag")
     fs = s.add_argument_group("field-style bags")

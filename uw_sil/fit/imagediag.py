@@ -18,7 +18,8 @@ themselves can be judged:
 
 Not judged (they need the scene model, the range or the poses): ``forward_scatter`` (the sharp
 reference is unknown), ``backscatter_coefficient`` (needs range), ``unmodeled_geometry`` (needs the
-scene model), ``pose_error`` (needs poses). They are listed under ``not_judged``.
+scene model), ``pose_error`` (needs poses), ``port_refraction`` (needs the scene model and poses). They are
+listed under ``not_judged``.
 
 The output follows the diagnosis JSON schema (:mod:`uw_sil.fit.diagnose`) with ``"mode": "images"``:
 ``candidates`` is empty and the θ fields are ``null`` (nothing was fitted).
@@ -48,6 +49,7 @@ NOT_JUDGED = {
     "backscatter_coefficient": "needs the range of every pixel",
     "unmodeled_geometry": "needs a scene model to say what should be open water",
     "pose_error": "needs recorded poses and a scene model",
+    "port_refraction": "needs a scene model and poses: where the pinhole model puts the edges",
 }
 _MAD = 1.4826
 _LUMA = np.array([0.299, 0.587, 0.114], np.float32)

@@ -18,6 +18,7 @@ from .camera_response import CameraResponseJudge
 from .compression import CompressionJudge
 from .forward_scatter import ForwardScatterJudge
 from .marine_snow import MarineSnowJudge
+from .port_refraction import PortRefractionJudge
 from .pose_error import PoseErrorJudge
 from .sensor_noise import SensorNoiseJudge
 from .unmodeled_geometry import UnmodeledGeometryJudge
@@ -31,7 +32,7 @@ def _registry() -> dict:
 
     made = {j.effect: j for j in (ArtificialLightJudge(), BackscatterCoefficientJudge(), CameraResponseJudge(),
                                   CompressionJudge(),
-                                  ForwardScatterJudge(), MarineSnowJudge(), PoseErrorJudge(), SensorNoiseJudge(),
+                                  ForwardScatterJudge(), MarineSnowJudge(), PortRefractionJudge(), PoseErrorJudge(), SensorNoiseJudge(),
                                   UnmodeledGeometryJudge(), VignettingJudge())}
     return {n: made[n] for n in EFFECT_ORDER if n in made}
 

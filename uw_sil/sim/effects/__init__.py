@@ -13,6 +13,7 @@ artificial_light           radiance    1-2 vehicle lamps: beam, 1/R^2, exp(-a R_
 backscatter_coefficient    medium      beta_D != beta_B (per-channel ratio), beta_D falling with range
 marine_snow                medium      sparse lit particles, new every frame
 forward_scatter            direct      range-dependent blur of the direct signal
+port_refraction            sensor      flat-port refraction: pincushion distortion and lateral colour (Snell)
 vignetting                 sensor      radial falloff 1 + k1 rho^2 + k2 rho^4, the same every frame
 camera_response            sensor      tone curve, white-balance gains, black-level pedestal
 sensor_noise               sensor      Poisson-Gaussian noise, spatially correlated, fixed pattern
@@ -36,6 +37,7 @@ from .camera_response import CameraResponse
 from .compression import Compression
 from .forward_scatter import ForwardScatter
 from .marine_snow import MarineSnow
+from .port_refraction import PortRefraction
 from .pose_error import PoseError
 from .sensor_noise import SensorNoiseEffect
 from .unmodeled_geometry import UnmodeledGeometry
@@ -45,7 +47,7 @@ __all__ = ["EFFECTS", "EFFECT_ORDER", "SEVERITIES", "DEFAULT_SEVERITY", "get_eff
            "Effect", "EffectParam", "ModelTerms", "STAGES"]
 
 _ALL = (PoseError(), UnmodeledGeometry(), ArtificialLight(), BackscatterCoefficient(), MarineSnow(),
-        ForwardScatter(), Vignetting(), CameraResponse(), SensorNoiseEffect(), Compression())
+        ForwardScatter(), PortRefraction(), Vignetting(), CameraResponse(), SensorNoiseEffect(), Compression())
 
 #: Names in composition order (stage order, then the order within a stage).
 EFFECT_ORDER = tuple(e.name for e in sorted(_ALL, key=lambda e: STAGES.index(e.stage)))

@@ -1,0 +1,119 @@
+"""Flat-port refraction (:mod:`uw_sil.sim.effects.port_refraction`) and its diagnosis plug-in."""
+import json
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from uw_sil.sim.camera import CameraModel
+from uw_sil.sim.effects import EFFECT_ORDER, get_effect
+
+CAM = CameraModel.from_fov(320, 240, 70.0)
+
+
+def _state(cam=CAM):
+    e = get_effect("port_refraction")
+    return e, e.prepare(SimpleNamespace(shape=(cam.height, cam.width)), cam)
+
+
+def _centroid_x(plane) -> float:
+    w = plane.sum(axis=0)
+    return float((w * np.arange(plane.shape[1])).sum() / w.sum())
+
+
+@pytest.mark.parametrize("n", [1.08, 1.34])
+def test_a_point_lands_where_snells_law_puts_it_in_each_colour(n):
+    """A small bright square the pinhole puts at normalized radius t is recorded at t / sqrt(1 - (n_c^2 - 1) t^2)
+    (n sin(theta_water) = sin(theta_air), focal length matched at the centre), each channel with its own n:
+    blue, refracted most, furthest out. Measured to a tenth of a pixel."""
+    e, st = _state()
+    vals = {"n": n, "dispersion": 0.009}
+    I = np.zeros((3, CAM.height, CAM.width), np.float32)
+    u0, v0 = int(CAM.cx + 0.45 * CAM.fx), int(round(CAM.cy))
+    I[:, v0 - 1:v0 + 2, u0 - 1:u0 + 2] = 1.0
+    terms = SimpleNamespace(I=I, state={"port_refraction": st})
+    e.apply(terms, vals, None)
+    t = (u0 - CAM.cx) / CAM.fx
+    got = [_centroid_x(terms.I[c]) for c in range(3)]
+    want = [CAM.cx + CAM.fx * t / math.sqrt(1 - (nc * nc - 1) * t * t) for nc in e.indices(vals)]
+    assert np.allclose(got, want, atol=0.1), (got, want)
+    assert got[0] < got[1] < got[2]
+    assert got[1] - u0 > (3.0 if n > 1.2 else 0.5)              # pushed outwards (pincushion)
+
+
+def test_restoring_undoes_the_refraction_and_neutral_values_change_nothing():
+    e, st = _state()
+    yy, xx = np.mgrid[0:CAM.height, 0:CAM.width].astype(np.float32)
+    I = np.stack([0.5 + 0.3 * np.sin(xx / 9.0) * np.cos(yy / 7.0), 0.4 + 0.002 * xx,
+                  0.3 + 0.002 * yy]).astype(np.float32)
+    vals = e.severity("strong")
+    terms = SimpleNamespace(I=I.copy(), state={"port_refraction": st})
+    e.apply(terms, vals, None)
+    assert np.abs(terms.I - I).max() > 0.1
+    back = e.invert(terms.I, terms, vals)
+    inner = (slice(40, -40), slice(50, -50))                 # (the corners sample beyond the image's edge)
+    assert np.abs(back[:, inner[0], inner[1]] - I[:, inner[0], inner[1]]).max() < 0.02
+    assert e.is_identity(e.defaults())
+    terms = SimpleNamespace(I=I.copy(), state={"port_refraction": st})
+    e.apply(terms, e.defaults(), None)
+    assert np.array_equal(terms.I, I)
+
+
+def test_the_port_bends_before_the_lens_darkens_and_the_camera_records():
+    order = list(EFFECT_ORDER)
+    assert order.index("forward_scatter") < order.index("port_refraction") < order.index("vignetting")
+
+
+def test_the_plug_in_recovers_a_flat_ports_index_and_its_residual(tmp_path):
+    """The diagnosis plug-in refits the port on an own trial with an uncorrected flat port (n 1.34): the fitted
+    index within 0.03 of the truth, and its least-squares fit removes most of the held-out residual (measured: 83 %
+    at 640x480; the held-out residual, not θ, accepts it: see the plug-in)."""
+    from uw_sil.bags.synth import synthesize_trial, truth_path
+    from uw_sil.fit.diagfit import EffectModel
+    from uw_sil.fit.judges import JUDGES, Current, Job
+    from uw_sil.fit.judges.base import current_ls, residual_gain
+    from uw_sil.fit.residuals import load_frames, reduce_frame, split_frames
+
+    bag = tmp_path / "t.mcap"
+    synthesize_trial(bag, n_frames=6, seed=3, camera=CameraModel.from_fov(320, 240),
+                     effects={"port_refraction": "strong"})
+    truth = json.loads(truth_path(bag).read_text())
+    fit_f, sel_f = split_frames(load_frames(bag, k=6))
+    R = {id(f): reduce_frame(f, 1) for f in fit_f + sel_f}
+    R_ls = {id(f): reduce_frame(f, 2) for f in fit_f + sel_f}
+    job = Job(fit_f=fit_f, sel_f=sel_f, R_hi=R, R_lo=R, R_ls=R_ls, fog="exp2", seed=0, max_iter=0, popsize=12,
+              patience=6, sigs={}, prox={}, judges=JUDGES)
+    base = np.array([truth["params"][k] for k in ("a_r", "a_g", "a_b", "b_r", "b_g", "b_b", "rho_f")])
+    model = EffectModel(job.reduced(fit_f), (), fog="exp2", seed=0)
+    x = model.x0(base)
+    cur = current_ls(job, Current(effects=(), values={}, base=base,
+                                  theta_fit=float(job.frame_theta(model, fit_f, x).mean()),
+                                  sel_pf=job.frame_theta(model, sel_f, x, seed_offset=50)[0], x=x, model=model))
+    r = JUDGES["port_refraction"].refit(job, cur)
+    n = r.params["effects"]["port_refraction"]["n"] if "effects" in r.params else r.params["port_refraction.n"]
+    assert abs(n - 1.34) < 0.03, n
+    gain, margin = residual_gain(cur, r)
+    assert gain > 0.5 and gain > margin, (gain, margin)
+
+
+def test_the_enhancer_undoes_a_flat_port():
+    """``UnderwaterModel.restore`` remaps a recording through a flat port back to the pinhole's geometry before it
+    inverts the water: against the clean render, the restored panel is three times closer than the same recording
+    restored without the port (measured: mean largest-channel error 0.036 against 0.120, at 1.6 m; two bilinear
+    resamplings blur the panel's fine texture a little, and the inverse of the water amplifies it)."""
+    from uw_sil.sim.model import UnderwaterModel
+    from uw_sil.sim.params import UnderwaterParams
+    from uw_sil.sim.render import Renderer
+    from uw_sil.sim.scene import facing_pose
+
+    P = UnderwaterParams(a=(0.35, 0.1, 0.08), b=(0.06, 0.3, 0.4), rho_f=0.05)
+    T = facing_pose(1.6, yaw=0.1)
+    with Renderer(camera=CAM) as ren:
+        rr = ren.render(T)
+    with_port = UnderwaterModel(P, {"port_refraction": "strong"})
+    img = with_port.degrade(rr, CAM, pose=T)
+    obj = np.isfinite(rr.range)
+    good = np.abs(with_port.restore(img, rr, CAM, pose=T).image - rr.rgb).max(axis=-1)[obj]
+    bad = np.abs(UnderwaterModel(P, {}).restore(img, rr, CAM, pose=T).image - rr.rgb).max(axis=-1)[obj]
+    assert np.median(good) < 0.03 and np.mean(good) < 0.4 * np.mean(bad), (np.median(good), good.mean(), bad.mean())

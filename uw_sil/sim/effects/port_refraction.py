@@ -1,0 +1,103 @@
+"""Flat-port refraction: the radial distortion and lateral colour of a camera behind a flat window.
+
+A ray that leaves the scene at angle ``theta_w`` from the optical axis (in water) is bent at a flat port to
+``theta_a`` in air, ``n sin(theta_w) = sin(theta_a)`` (Snell; a thin port at the entrance pupil, the glass's
+two faces cancelling, ``n`` = n_water / n_air). A pinhole model calibrated in water matches the centre of the
+image (its focal length is ``n`` times the lens's in air) but not the rest: the pixel that the pinhole puts at
+normalized radius ``t = tan(theta_w)`` is recorded at ``tan(theta_a) / n``. The image is therefore stretched
+outwards more the further from the centre (pincushion distortion, no free polynomial):
+
+    t_recorded(t) = t / sqrt(1 - (n^2 - 1) t^2),  or, sampling the pinhole image,
+    I(t) = I_pinhole(t / sqrt(1 + (n^2 - 1) t^2))                      (per pixel, about the principal point)
+
+with ``t`` from the camera's focal lengths. Water's index falls with wavelength (blue 1.340, green 1.336, red
+1.331 at 450 / 550 / 650 nm): each colour channel is stretched by its own ``n`` (lateral colour, colour fringes
+that grow with the radius); ``dispersion`` is ``n_blue - n_red`` and green takes ``n``. Values: an uncorrected
+flat port in sea water n = 1.34 (a 640x480 camera with a 70 degree field records in its corners what the
+pinhole shows 85 px nearer the centre); a calibration with a distortion model leaves a fraction of that (an
+effective n nearer 1). Neutral: n = 1, dispersion 0. A dome port centred on the pupil refracts no ray (nothing to
+model here); a port off the pupil makes the distortion depend on range (not modelled: a thin port at the pupil
+only). Last in the optics, first of the sensor stage: the lens's vignetting, the camera's response and noise come
+after it.
+"""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from .base import Effect, EffectParam
+
+#: per channel (r, g, b), the share of ``dispersion`` added to ``n``
+CHANNEL_OFFSETS = (-0.5, 0.0, 0.5)
+
+
+class PortRefraction(Effect):
+    name = "port_refraction"
+    stage = "sensor"
+    invertible = True
+    random_per_frame = False
+    summary = ("flat-port refraction: the pinhole image sampled at t / sqrt(1 + (n^2 - 1) t^2) about the principal "
+               "point (pincushion), per colour channel (lateral colour)")
+    params = (
+        EffectParam("n", 1.0, 1.0, 1.5, "", "refractive index ratio water / air of the port's refraction (1: none)"),
+        EffectParam("dispersion", 0.0, 0.0, 0.03, "", "n_blue - n_red (water: ~0.009); green takes n"),
+    )
+    severities = {
+        "mild": {"n": 1.08, "dispersion": 0.003},     # what a partial calibration leaves of a flat port
+        "strong": {"n": 1.34, "dispersion": 0.009},   # an uncorrected flat port in sea water
+    }
+
+    def prepare(self, geom, camera):
+        h, w = geom.shape
+        x = ((np.arange(w, dtype=np.float64) - camera.cx) / camera.fx)[None, :]
+        y = ((np.arange(h, dtype=np.float64) - camera.cy) / camera.fy)[:, None]
+        t2 = (x * x + y * y).astype(np.float32)
+        du = np.broadcast_to((np.arange(w, dtype=np.float32) - np.float32(camera.cx))[None, :], (h, w))
+        dv = np.broadcast_to((np.arange(h, dtype=np.float32) - np.float32(camera.cy))[:, None], (h, w))
+        return {"t2": t2, "du": du, "dv": dv, "cx": np.float32(camera.cx), "cy": np.float32(camera.cy),
+                "maps": {}}
+
+    @staticmethod
+    def indices(values) -> tuple:
+        """``n`` of the red, green and blue channels."""
+        n, d = float(values["n"]), float(values["dispersion"])
+        return tuple(n + o * d for o in CHANNEL_OFFSETS)
+
+    def _map(self, state, n: float, inverse: bool):
+        """(map_x, map_y) float32 for cv2.remap: where each pixel of the output samples its input."""
+        key = (round(n, 12), inverse)
+        hit = state["maps"].get(key)
+        if hit is not None:
+            return hit
+        c = np.float32(n * n - 1.0)
+        if inverse:      # the pinhole image from a recorded one: t_recorded = t / sqrt(1 - (n^2 - 1) t^2)
+            k = 1.0 / np.sqrt(np.maximum(1.0 - c * state["t2"], np.float32(1e-6)))
+        else:
+            k = 1.0 / np.sqrt(1.0 + c * state["t2"])
+        out = ((state["cx"] + state["du"] * k).astype(np.float32), (state["cy"] + state["dv"] * k).astype(np.float32))
+        if len(state["maps"]) >= 12:
+            state["maps"].pop(next(iter(state["maps"])))
+        state["maps"][key] = out
+        return out
+
+    def _remap(self, I, state, values, inverse: bool) -> np.ndarray:
+        out = np.empty_like(I)
+        for c, n in enumerate(self.indices(values)):
+            if n == 1.0:
+                out[c] = I[c]
+                continue
+            mx, my = self._map(state, n, inverse)
+            cv2.remap(I[c], mx, my, cv2.INTER_LINEAR, dst=out[c], borderMode=cv2.BORDER_REPLICATE)
+        return out
+
+    def apply(self, terms, values, rng):
+        terms.I = self._remap(terms.I, terms.state[self.name], values, inverse=False)
+
+    def invert(self, I, terms, values):
+        return self._remap(I, terms.state[self.name], values, inverse=True)
+
+    def shift_px(self, values, camera, t: float) -> float:
+        """How far (pixels, along x) from where the pinhole puts it the green channel records what it shows at
+        normalized radius ``t``."""
+        c = float(values["n"]) ** 2 - 1.0
+        return float(camera.fx * t * (1.0 - 1.0 / np.sqrt(1.0 + c * t * t)))
