@@ -57,6 +57,8 @@ EFFECTS = ("artificial_light", "forward_scatter", "backscatter_coefficient", "vi
 PAIRS = (("artificial_light", "vignetting"), ("forward_scatter", "marine_snow"), ("camera_response", "pose_error"))
 FOREIGN = ("artificial_light", "forward_scatter", "vignetting", "sensor_noise", "marine_snow", "camera_response",
            "backscatter_coefficient", "unmodeled_geometry", "pose_error")
+# (port_refraction, added later, is in neither list: the multi-effect sets are drawn from them, and adding it would
+# redraw every one; its trials: --effects port_refraction, --foreign-effects port_refraction)
 # effects of the physical generator that the registry can name (its "compression" is not offered by default)
 PHYSICAL = ("forward_scatter", "vignetting", "sensor_noise", "camera_response", "marine_snow", "unmodeled_geometry")
 MULTI_GENS = ("own", "foreign", "physical")

@@ -17,6 +17,8 @@ forms of uw_sil.sim.effects:
 - backscatter_coefficient: backscatter transmission with its own coefficients (beta_B = k * beta_D).
 - unmodeled_geometry: an analytic textured seabed plane below the panel (ray-plane intersection).
 - pose_error: recorded pose biased (rotation + translation) with per-frame jitter.
+- port_refraction: a Brown-Conrady radial polynomial (k1 r^2 + k2 r^4, not Snell's law) about a centre off the
+  principal point, a little stronger in blue.
 
 Trajectory: 4 m to 1.2-1.8 m, yaw up to +-15 deg, pitch up to +-10 deg.
 """
@@ -38,7 +40,7 @@ from uw_sil.sim.render import Renderer
 from uw_sil.sim.scene import facing_pose
 
 FOREIGN_EFFECTS = ("artificial_light", "forward_scatter", "vignetting", "sensor_noise", "marine_snow",
-                   "camera_response", "backscatter_coefficient", "unmodeled_geometry", "pose_error")
+                   "camera_response", "backscatter_coefficient", "unmodeled_geometry", "pose_error", "port_refraction")
 
 
 @dataclass
@@ -149,6 +151,31 @@ def vignetting(strength: str):
         tan2 = u[None, :] ** 2 + v[:, None] ** 2
         V = (1.0 / (1.0 + tan2)) ** (n / 2.0)           # cos^n of the field angle
         ctx.img = (ctx.img * V[..., None]).astype(np.float32)
+    return eff
+
+
+def port_refraction(strength: str):
+    # a flat port's distortion as a calibration toolbox would describe it: Brown-Conrady radial polynomial
+    # (not Snell's law), about a centre off the principal point (a decentred port), a little more in blue
+    k1, k2 = (0.16, 0.05) if strength == "strong" else (0.04, 0.0)
+    colour = (0.97, 1.0, 1.04)
+
+    def eff(ctx: Ctx):
+        import cv2
+
+        cam = ctx.camera
+        cx, cy = cam.cx - 0.01 * cam.width, cam.cy + 0.015 * cam.height
+        x = ((np.arange(cam.width) - cx) / cam.fx)[None, :]
+        y = ((np.arange(cam.height) - cy) / cam.fy)[:, None]
+        r2 = x * x + y * y
+        out = np.empty_like(ctx.img)
+        for c in range(3):
+            s = 1.0 - colour[c] * (k1 * r2 + k2 * r2 * r2)     # where each recorded pixel samples the pinhole image
+            mx = (cx + cam.fx * x * s).astype(np.float32)
+            my = (cy + cam.fy * y * s).astype(np.float32)
+            out[..., c] = cv2.remap(np.ascontiguousarray(ctx.img[..., c]), mx, my, cv2.INTER_LINEAR,
+                                    borderMode=cv2.BORDER_REPLICATE)
+        ctx.img = out
     return eff
 
 
@@ -291,10 +318,10 @@ def _rotvec(v):
 MAKERS = {"artificial_light": artificial_light, "forward_scatter": forward_scatter, "vignetting": vignetting,
           "sensor_noise": sensor_noise, "marine_snow": marine_snow, "camera_response": camera_response,
           "backscatter_coefficient": backscatter_coefficient, "unmodeled_geometry": unmodeled_geometry,
-          "pose_error": pose_error}
+          "pose_error": pose_error, "port_refraction": port_refraction}
 # application order: geometry, radiance, medium, direct, sensor
 ORDER = ("pose_error", "unmodeled_geometry", "artificial_light", "backscatter_coefficient", "marine_snow",
-         "forward_scatter", "vignetting", "camera_response", "sensor_noise")
+         "forward_scatter", "port_refraction", "vignetting", "camera_response", "sensor_noise")
 
 
 def foreign_trajectory(n: int, rng: np.random.Generator, start_m=4.0, end_m=None):

@@ -35,6 +35,8 @@ Effects that can be concealed on top (``effects={name: 'mild'|'strong'}``):
 - forward_scatter: small-angle scattered light ``(exp(-(c - eta b) R) - exp(-c R))`` spread by Jaffe's
   PSF ``F^-1{exp(-B R f)}``, i.e. the 2D kernel ``w / (2 pi (r**2 + w**2) ** 1.5)`` with ``w`` growing
   linearly with range (applied per range layer of the source pixels);
+- port_refraction: the flat port bends the rays (Snell's law at each channel's wavelength, sea water's index:
+  pincushion and lateral colour); strong uncorrected, mild what a one-coefficient radial calibration leaves;
 - vignetting: lens relative illumination ``cos^m`` of the in-air angle behind a flat port (Snell), the
   port's Fresnel transmission (water-glass-air, unpolarised) and, strong, a mechanical housing clip;
 - sensor_noise: a high-gain camera instead (6 / 2.5 e-/DN): Bayer RGGB mosaic of the raw signal, Poisson
@@ -69,7 +71,7 @@ from uw_sil.sim.render import Renderer
 from uw_sil.sim.scene import add_seafloor, facing_pose, load_model
 
 PHYSICAL_EFFECTS = ("forward_scatter", "vignetting", "sensor_noise", "camera_response", "marine_snow",
-                    "unmodeled_geometry", "compression")
+                    "unmodeled_geometry", "compression", "port_refraction")
 LEVELS = ("mild", "strong")
 LAMBDA_NM = np.array([610.0, 540.0, 465.0])      # effective RGB wavelengths of the camera
 
@@ -342,6 +344,45 @@ def forward_scatter_add(L_s, R, hit, dive: Dive, level: str, fx: float) -> np.nd
     return out
 
 
+def sea_water_index(lam_nm) -> np.ndarray:
+    """Refractive index of sea water (35 PSU, ~20 C) against air at wavelengths ``lam_nm``: a Cauchy fit of fresh
+    water's index, 1.3247 + 3.3e3 / lam^2 - 3.2e7 / lam^4, plus 0.0058 for the salt."""
+    lam = np.asarray(lam_nm, float)
+    return 1.3247 + 3.3e3 / lam ** 2 - 3.2e7 / lam ** 4 + 0.0058
+
+
+def port_remap(img: np.ndarray, cam: CameraModel, level: str) -> np.ndarray:
+    """A flat port (thin, at the entrance pupil) in front of a camera whose pinhole model was calibrated in water:
+    Snell's law per channel at the channel's wavelength (the recorded pixel at normalized radius t sees what the
+    pinhole puts at ``t / sqrt(1 + (n^2 - 1) t^2)``). Strong: uncorrected. Mild: the images rectified by a
+    calibration that fitted one radial coefficient (Brown's k1) to the green channel's distortion over the inner
+    half of the radius: what is left is the higher orders towards the corners and the colour."""
+    import cv2
+
+    xt = ((np.arange(cam.width) - cam.cx) / cam.fx)[None, :]
+    yt = ((np.arange(cam.height) - cam.cy) / cam.fy)[:, None]
+    t2 = xt * xt + yt * yt
+    n = sea_water_index(LAMBDA_NM)
+    scale = np.ones_like(t2)
+    if level == "mild":
+        # the calibration's k1, fitted where its target was seen (radii up to half the corner's): recorded radius
+        # ~ t (1 + k1 t^2); beyond, Snell's higher orders remain (pincushion)
+        tt = np.linspace(0.0, 0.5 * math.sqrt(float(t2.max())), 200)
+        c = n[1] ** 2 - 1
+        rec = tt / np.sqrt(1 - np.minimum(c * tt * tt, 0.95))
+        k1 = float(np.sum((rec - tt) * tt ** 3) / np.sum(tt ** 6))
+        scale = 1.0 + k1 * t2               # rectified pixel at t samples the recording at t (1 + k1 t^2)
+    out = np.empty_like(img)
+    for ch in range(3):
+        t2r = t2 * scale * scale
+        s = scale / np.sqrt(1.0 + (n[ch] ** 2 - 1.0) * t2r)
+        mx = (cam.cx + cam.fx * xt * s).astype(np.float32)
+        my = (cam.cy + cam.fy * yt * s).astype(np.float32)
+        out[..., ch] = cv2.remap(np.ascontiguousarray(img[..., ch], dtype=np.float32), mx, my, cv2.INTER_LINEAR,
+                                 borderMode=cv2.BORDER_REPLICATE)
+    return out
+
+
 def vignetting_map(cam: CameraModel, dirs, level: str) -> np.ndarray:
     n_w, n_g = 1.34, 1.5
     m = {"mild": 0.6, "strong": 1.2}[level]
@@ -574,6 +615,9 @@ def synth_physical(out, effects: dict, n_frames: int = 8, seed: int = 0, width: 
                 img = add_snow(img, snow, k, T, np.where(hit, rr.depth, np.inf), dive)
                 if snow_twin is not None:
                     twin = add_snow(twin, snow_twin, k, T, np.where(hit, rr.depth, np.inf), dive)
+            if "port_refraction" in effects:
+                img = port_remap(img, cam, effects["port_refraction"])
+                twin = None if twin is None else port_remap(twin, cam, effects["port_refraction"])
             if "vignetting" in effects:
                 vig = vignetting_map(cam, dirs, effects["vignetting"])[..., None]
                 img = img * vig
