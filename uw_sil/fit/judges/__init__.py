@@ -31,9 +31,8 @@ def _registry() -> dict:
     from ...sim.effects import EFFECT_ORDER
 
     made = {j.effect: j for j in (ArtificialLightJudge(), BackscatterCoefficientJudge(), CameraResponseJudge(),
-                                  CompressionJudge(),
-                                  ForwardScatterJudge(), MarineSnowJudge(), PortRefractionJudge(), PoseErrorJudge(), SensorNoiseJudge(),
-                                  UnmodeledGeometryJudge(), VignettingJudge())}
+                                  CompressionJudge(), ForwardScatterJudge(), MarineSnowJudge(), PortRefractionJudge(),
+                                  PoseErrorJudge(), SensorNoiseJudge(), UnmodeledGeometryJudge(), VignettingJudge())}
     return {n: made[n] for n in EFFECT_ORDER if n in made}
 
 
