@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import html
 import json
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -148,7 +149,8 @@ def models_figure(diag):
         if ext is not None:
             se = ext.simulate(k, fits[key]["x"][None])[0]
             ax[2].imshow(np.clip(g * se, 0, 1))
-            ax[2].set_title(f"extended model: {key}{gain_words(g)}", fontsize=8)
+            # (wrapped: a model of three or four effects ran into the next column's title)
+            ax[2].set_title("\n".join(textwrap.wrap(f"extended model: {key}{gain_words(g)}", 56)), fontsize=8)
         else:
             ax[2].text(0.5, 0.5, "no effect accepted", ha="center", va="center")
         # what the final model leaves over, on the base model's colour scale (lighter: less left)
