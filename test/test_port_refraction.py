@@ -117,3 +117,15 @@ def test_the_enhancer_undoes_a_flat_port():
     good = np.abs(with_port.restore(img, rr, CAM, pose=T).image - rr.rgb).max(axis=-1)[obj]
     bad = np.abs(UnderwaterModel(P, {}).restore(img, rr, CAM, pose=T).image - rr.rgb).max(axis=-1)[obj]
     assert np.median(good) < 0.03 and np.mean(good) < 0.4 * np.mean(bad), (np.median(good), good.mean(), bad.mean())
+
+
+@pytest.mark.parametrize("theta_gain, named", [(-0.002, False), (0.0, False), (0.001, True)])
+def test_the_residual_names_a_port_only_where_theta_rises_too(theta_gain, named):
+    """A port moves edges, which θ sees: a held-out residual gain beyond its margin (10.8 % against 5 %, as on a
+    lamp-lit dive without a port) names it only where held-out θ rose as well."""
+    from uw_sil.fit.judges import JUDGES
+
+    cur = SimpleNamespace(sel_pf=np.full(4, 0.80))
+    r = SimpleNamespace(sel_pf=np.full(4, 0.80 + theta_gain), extra={})
+    ok, _, crit = JUDGES["port_refraction"].accept(r, cur, 0.0077, residual=(0.108, 0.05))
+    assert ok is named and (crit == "residual" or not named)
