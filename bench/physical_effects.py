@@ -372,9 +372,9 @@ def port_remap(img: np.ndarray, cam: CameraModel, level: str) -> np.ndarray:
         rec = tt / np.sqrt(1 - np.minimum(c * tt * tt, 0.95))
         k1 = float(np.sum((rec - tt) * tt ** 3) / np.sum(tt ** 6))
         scale = 1.0 + k1 * t2               # rectified pixel at t samples the recording at t (1 + k1 t^2)
+    t2r = t2 * scale * scale                # the recording's radius where the rectified pixel at t samples it
     out = np.empty_like(img)
     for ch in range(3):
-        t2r = t2 * scale * scale
         s = scale / np.sqrt(1.0 + (n[ch] ** 2 - 1.0) * t2r)
         mx = (cam.cx + cam.fx * xt * s).astype(np.float32)
         my = (cam.cy + cam.fy * yt * s).astype(np.float32)
