@@ -1,9 +1,9 @@
 """The nine physically based test dives (seeds 401-409): what `uw-sil diagnose` names on each, blind.
 
-The README's diagnosis numbers since 2026-11-27 ("the nine physical dives of seeds 401-409") refer to these
-dives: the physically based generator (``physical_effects.py``: the vehicle's lamps as the only light, always
-on, so ``artificial_light`` is in every truth) with the effects below concealed on top, one set per seed,
-chosen once to mix mild and strong, single and several effects and one dive with nothing but the lamps (405).
+The diagnosis numbers of the README and of docs/diagnosis-log.md since 2026-11-27 ("the nine physical dives of
+seeds 401-409") refer to these dives: the physically based generator (``physical_effects.py``: the vehicle's lamps
+as the only light, always on, so ``artificial_light`` is in every truth) with the effects below concealed on top,
+one set per seed, chosen once to mix mild and strong, single and several effects and one dive with nothing but the lamps (405).
 Each dive (8 frames, 640x480) is written, diagnosed in a fresh process from the bag alone (``uw-sil diagnose
 --bag B --json J``; the truth stays in this script) and scored: effects named right, missed and named falsely,
 the lamps, the final model's held-out θ (as fitted, and as ``sim_camera`` renders it with the params file:
