@@ -14,6 +14,12 @@ radiative transfer; its trials are a lamps-only control and each of its effects 
 the lamps. Reported: lamps found (``artificial_light`` in the verdict), the concealed effect found, other
 names (false alarms), held-out θ.
 
+A fourth generator (``literature_effects.py``, ``--literature-seeds N``, seeds 600 on): written from the
+published physics by a session that read none of the project's effect code, its other generators or this bench;
+its trials are a control and each of its effects mild and strong, scored like the foreign ones (last lines
+``literature: top1=.. false_alarm=.. trials=N``); its multi-effect trials only with ``--multi-gens``
+naming ``literature`` (seeds 700 on).
+
 Multi-effect trials (``--multi N``: N per generator of ``--multi-gens``): 3-4 effects concealed at once
 (lamps in about three quarters of the own / foreign ones, always in the physical ones), each with an
 effect-free control of the same generator and seed. Reported per generator and overall: per-effect recall
@@ -32,7 +38,7 @@ all multi-effect trials; trials: all trials of the run)::
     concealed: top1=XX% false_alarm=YY% multi_recall=RR% multi_precision=PP% trials=N
 
     .venv/bin/python bench/bench_concealed.py [--seeds 2] [--width 640] [--frames 8] [--foreign-seeds 1]
-        [--physical-seeds 1] [--multi 2] [--effects a,b,...] [--severities mild,strong] [--controls 3]
+        [--physical-seeds 1] [--literature-seeds 0] [--multi 2] [--effects a,b,...] [--severities mild,strong] [--controls 3]
         [--no-pairs] [--out-dir DIR] [--docs]
 
 Run it in the background (``nohup ... &``): a trial takes 1-3 minutes on a 2-core machine.
@@ -62,12 +68,16 @@ FOREIGN = ("artificial_light", "forward_scatter", "vignetting", "sensor_noise", 
 # effects of the physical generator that the registry can name (its "compression" is not offered by default)
 PHYSICAL = ("forward_scatter", "vignetting", "sensor_noise", "camera_response", "marine_snow", "unmodeled_geometry")
 MULTI_GENS = ("own", "foreign", "physical")
+#: A fourth generator (``literature_effects.py``, ``--literature-seeds N``), written from the literature by a session
+#: that read none of the project's effect code nor its other generators; its multi-effect trials only on request
+#: (``--multi-gens ...,literature``: the default lists, and so the default runs, stay what they were)
+ALL_GENS = MULTI_GENS + ("literature",)
 
 
 def multi_effects(gen: str, i: int, pool) -> dict:
     """The i-th multi-effect set of a generator: 3-4 effects (lamps in ~3/4 of them; physical: lamps always,
     plus 2-3 of its own), mild or strong (strong more often). Deterministic."""
-    r = np.random.default_rng(9000 + 97 * MULTI_GENS.index(gen) + i)
+    r = np.random.default_rng(9000 + 97 * ALL_GENS.index(gen) + i)
     n = int(r.integers(3, 5))
     if gen == "physical":
         names = list(r.choice(list(pool), size=min(n - 1, len(pool)), replace=False))
@@ -114,10 +124,21 @@ def make_trials(args) -> list:
         for e in pe:
             for s in sev:
                 trials.append({"gen": "physical", "effects": {e: s}, "seed": 400 + seed})
-    pools = {"own": EFFECTS, "foreign": FOREIGN, "physical": PHYSICAL}     # multi: whole lists, not the subsets
+    if args.literature_seeds or "literature" in args.multi_gens.split(","):
+        from literature_effects import LITERATURE_EFFECTS
+    else:
+        LITERATURE_EFFECTS = ()
+    le = args.literature_effects.split(",") if args.literature_effects else LITERATURE_EFFECTS
+    for seed in range(args.literature_seeds):
+        trials.append({"gen": "literature", "effects": {}, "seed": 600 + seed})
+        for e in le:
+            for s in sev:
+                trials.append({"gen": "literature", "effects": {e: s}, "seed": 600 + seed})
+    # multi: whole lists, not the subsets
+    pools = {"own": EFFECTS, "foreign": FOREIGN, "physical": PHYSICAL, "literature": LITERATURE_EFFECTS}
     for gen in args.multi_gens.split(","):
         for i in range(args.multi):
-            seed = {"own": 200, "foreign": 300, "physical": 500}[gen] + i
+            seed = {"own": 200, "foreign": 300, "physical": 500, "literature": 700}[gen] + i
             trials.append({"gen": gen, "effects": multi_effects(gen, i, pools[gen]), "seed": seed, "multi": True})
             trials.append({"gen": gen, "effects": {}, "seed": seed, "multi": True})     # its effect-free control
     dedup = {}
@@ -197,6 +218,11 @@ def run_trial(t, args) -> dict:
                 tp = truth_path(out)
                 if tp.exists():
                     tp.unlink()
+        elif t["gen"] == "literature":
+            from literature_effects import synth_literature
+
+            synth_literature(bag, dict(t["effects"]), n_frames=args.frames, seed=t["seed"], width=args.width,
+                             twin_out=twin)
         elif t["gen"] == "foreign":
             from foreign_effects import synth_foreign
 
@@ -385,6 +411,9 @@ def main():
     ap.add_argument("--severities", default="mild,strong")
     ap.add_argument("--physical-seeds", type=int, default=1, help="dives of the physically based generator")
     ap.add_argument("--physical-effects", default=None, help="comma-separated subset of its effects")
+    ap.add_argument("--literature-seeds", type=int, default=0,
+                    help="dives of the generator written from the literature (literature_effects.py)")
+    ap.add_argument("--literature-effects", default=None, help="comma-separated subset of its effects")
     ap.add_argument("--multi", type=int, default=2, help="multi-effect trials per generator (each with a control)")
     ap.add_argument("--multi-gens", default=",".join(MULTI_GENS))
     ap.add_argument("--no-pairs", action="store_true")
@@ -429,15 +458,19 @@ def main():
     own = [r for r in classic if r["gen"] == "own"]
     foreign = [r for r in classic if r["gen"] == "foreign"]
     physical = [r for r in classic if r["gen"] == "physical"]
+    literature = [r for r in classic if r["gen"] == "literature"]
     t1, fa, n = summarize(own, "own generator") if own else (float("nan"), float("nan"), 0)
     if foreign:
         ft1, ffa, fn = summarize(foreign, "foreign variant")
         print(f"foreign: top1={100 * ft1:.0f}% false_alarm={100 * ffa:.0f}% trials={fn}")
+    if literature:
+        lt1, lfa, ln = summarize(literature, "literature generator")
+        print(f"literature: top1={100 * lt1:.0f}% false_alarm={100 * lfa:.0f}% trials={ln}")
     if physical:
         lamps, eff_found = summarize_physical(physical)
         print(f"physical: lamps={100 * lamps:.0f}% effect={100 * eff_found:.0f}% trials={len(physical)}")
     TP = FN = FP = 0
-    for gen in MULTI_GENS:
+    for gen in ALL_GENS:
         res = summarize_multi([r for r in rows if r["gen"] == gen], f"{gen} generator")
         if res[2]:
             TP, FN, FP = TP + res[3], FN + res[4], FP + res[5]
