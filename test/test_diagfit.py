@@ -89,6 +89,28 @@ def test_a_pose_correction_below_a_quarter_pixel_is_not_named():
     assert judge.accept(refit(4 * MIN_SHIFT_PX), current, 0.003)[0] is True
 
 
+def test_a_pose_correction_that_lowers_held_out_theta_is_not_named_by_its_residual():
+    """A pose correction aligns edges, which θ sees: one whose held-out θ falls took something else into its
+    residual (a 0.25 px "correction" taking part of a forward-scatter glow written from Wells' MTF: residual
+    -5.8 %, held-out θ -0.0019; it was named). Its residual alone does not name it then; with θ unchanged or
+    rising it does, and beyond θ's margin θ names it."""
+    from types import SimpleNamespace
+
+    from uw_sil.fit.judges.pose_error import PoseErrorJudge
+
+    judge = PoseErrorJudge()
+    current = SimpleNamespace(sel_pf=np.full(4, 0.80))
+
+    def refit(dtheta):
+        return SimpleNamespace(sel_pf=current.sel_pf + np.asarray(dtheta),
+                               statistic={"improvement": 0.058, "margin": 0.02, "shift_px": 0.5})
+
+    assert judge.accept(refit([0.0031, -0.0038, -0.0016, -0.0051]), current, 0.004)[0] is False
+    assert judge.accept(refit([0.0, 0.0, 0.0, 0.0]), current, 0.004)[:3:2] == (True, "residual")
+    assert judge.accept(refit([0.002, -0.001, 0.001, 0.0]), current, 0.004)[:3:2] == (True, "residual")
+    assert judge.accept(refit([0.01, 0.01, 0.01, 0.01]), current, 0.004)[:3:2] == (True, "theta")
+
+
 def test_a_pose_correction_renders_the_scene_at_the_corrected_pose(near_frame):
     """A corrected pose is rendered, not the recorded render warped: the corrected frame's geometry is the scene
     seen from ``Delta @ T_recorded`` bit for bit, with that pose, and what only the corrected pose sees (4.8 % of
