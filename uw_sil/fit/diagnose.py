@@ -927,7 +927,8 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
                     # where θ is blind; θ scores that fit too, and where it falls by more than the least change a
                     # θ gain is ever credited with (MIN_MARGIN), θ is not blind there: it says the simulation got
                     # worse, and no residual gain outweighs that (a wide forward-scatter glow, written from Wells'
-                    # MTF, taken as a camera response: residual -39 %, held-out θ -0.035, 8.9 margins against 11.7)
+                    # MTF, taken as a camera response: residual -39 %, 8.9 margins, held-out θ -0.035, per frame
+                    # -0.075 to +0.025; weighed in its own bootstrap margin, as until 2026-12-06, it was 0.7 of it)
                     r_full = least_squares_model(job, r)
                     fall = float(np.mean(current.sel_pf - r_full.sel_pf))
                     if fall > MIN_MARGIN:
