@@ -112,28 +112,19 @@ def make_trials(args) -> list:
         if not args.no_pairs and seed == 0:
             for a, b in PAIRS:
                 trials.append({"gen": "own", "effects": {a: "strong", b: "strong"}, "seed": seed})
-    fe = args.foreign_effects.split(",") if args.foreign_effects else FOREIGN
-    for seed in range(args.foreign_seeds):
-        trials.append({"gen": "foreign", "effects": {}, "seed": 100 + seed})
-        for e in fe:
-            for s in sev:
-                trials.append({"gen": "foreign", "effects": {e: s}, "seed": 100 + seed})
-    pe = args.physical_effects.split(",") if args.physical_effects else PHYSICAL
-    for seed in range(args.physical_seeds):
-        trials.append({"gen": "physical", "effects": {}, "seed": 400 + seed})
-        for e in pe:
-            for s in sev:
-                trials.append({"gen": "physical", "effects": {e: s}, "seed": 400 + seed})
     if args.literature_seeds or "literature" in args.multi_gens.split(","):
         from literature_effects import LITERATURE_EFFECTS
     else:
         LITERATURE_EFFECTS = ()
-    le = args.literature_effects.split(",") if args.literature_effects else LITERATURE_EFFECTS
-    for seed in range(args.literature_seeds):
-        trials.append({"gen": "literature", "effects": {}, "seed": 600 + seed})
-        for e in le:
-            for s in sev:
-                trials.append({"gen": "literature", "effects": {e: s}, "seed": 600 + seed})
+    # the other generators: per seed a control, then each effect at each severity
+    for gen, n_seeds, base, subset, whole in (
+            ("foreign", args.foreign_seeds, 100, args.foreign_effects, FOREIGN),
+            ("physical", args.physical_seeds, 400, args.physical_effects, PHYSICAL),
+            ("literature", args.literature_seeds, 600, args.literature_effects, LITERATURE_EFFECTS)):
+        names = subset.split(",") if subset else whole
+        for seed in range(base, base + n_seeds):
+            trials.append({"gen": gen, "effects": {}, "seed": seed})
+            trials += [{"gen": gen, "effects": {e: s}, "seed": seed} for e in names for s in sev]
     # multi: whole lists, not the subsets
     pools = {"own": EFFECTS, "foreign": FOREIGN, "physical": PHYSICAL, "literature": LITERATURE_EFFECTS}
     for gen in args.multi_gens.split(","):
