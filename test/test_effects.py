@@ -647,6 +647,39 @@ def test_forward_scatter_loses_more_high_frequencies_at_range(frames, renderer):
     assert kept["near"] < 1 and kept["far"] < kept["near"]
 
 
+@pytest.mark.parametrize("width", [5.0, 20.0, 40.0])
+def test_forward_scatters_halo_is_jaffes_filter(width):
+    """With all light forward-scattered and all of it in the halo (tail 1), a bright square at one range is spread by
+    Jaffe's ``F^-1{exp(-B R f)}`` (``B R = 2 pi w``): within 5 % of the peak of the exact filter, applied in the
+    frequency domain to the mirrored image, everywhere (the levels are octaves apart), the total light kept, and
+    the halo as far out as the filter puts it (a Gaussian of that width leaves nothing 10 widths out)."""
+    fs = get_effect("forward_scatter")
+    h, w, fx = 240, 320, 300.0
+    img = np.full((h, w), 0.05, np.float32)
+    img[100:140, 140:180] = 1.0
+    img[60:70, 40:60] = 0.5
+    r = np.full((h, w), 2.0, np.float32)
+    terms = SimpleNamespace(state={fs.name: (r, fx)}, D=np.stack([img, 0.5 * img, 0.2 * img]))
+    fs.apply(terms, {"strength": 50.0, "width": width, "tail": 1.0}, None)
+    scale = fx * width * 1e-3 * 2.0                                          # px
+    pad = 3 * max(h, w)
+    big = np.pad(img.astype(np.float64), pad, mode="symmetric")
+    f = np.hypot(*np.meshgrid(np.fft.fftfreq(big.shape[0]), np.fft.fftfreq(big.shape[1]), indexing="ij"))
+    exact = np.real(np.fft.ifft2(np.fft.fft2(big) * np.exp(-2 * np.pi * scale * f)))[pad:pad + h, pad:pad + w]
+    got = terms.D[0]
+    assert np.abs(got - exact).max() < 0.05 * exact.max()
+    np.testing.assert_allclose(terms.D[2], 0.2 * got, rtol=1e-4, atol=1e-6)
+    assert abs(float(got.mean() - img.mean())) < 1e-3 * float(img.mean())
+    # the halo 10 widths (or 100 px) right of the square: the filter's and ours, well above the background's 0.05
+    x = min(179 + int(10 * scale), w - 1)
+    halo = exact[120, x] - 0.05
+    assert halo > 1e-3
+    assert abs((got[120, x] - 0.05) - halo) < 0.25 * halo
+    gauss = SimpleNamespace(state=terms.state, D=np.stack([img, 0.5 * img, 0.2 * img]))
+    fs.apply(gauss, {"strength": 50.0, "width": width, "tail": 0.0}, None)
+    assert gauss.D[0][120, x] - 0.05 < 0.1 * halo
+
+
 def test_marine_snow_sparse_positive_new_every_frame(frames, renderer):
     cam = renderer.camera
     spec = {"marine_snow": "strong"}

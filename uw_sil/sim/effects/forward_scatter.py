@@ -4,18 +4,32 @@ Light from a surface point that is scattered through small angles on its way to 
 spread around the point's image. After McGlamery/Jaffe the forward-scattered part of the direct signal
 ``D`` at range ``r`` is the fraction ``1 - exp(-strength r)`` (``strength`` ~ the forward part of the
 scattering coefficient, ``c - G``), spread by a point-spread function whose angular width grows in
-proportion to the range (their ``exp(-B R f)`` filter)::
+proportion to the range::
 
-    D' = (1 - s) D + s (PSF_w * D),   s = 1 - exp(-strength r),   w = width * r   (angular sigma, mrad)
-    PSF_w = (1 - tail) G(w) + tail G(4 w)                                          (G: Gaussian)
+    D' = (1 - s) D + s (PSF_w * D),   s = 1 - exp(-strength r),   w = width * r   (angular scale, mrad)
+    PSF_w = (1 - tail) G_w + tail J_w
 
-``tail`` puts weight into a four times wider Gaussian (the heavy, halo-forming tails of measured
-underwater PSFs). The range-varying blur is computed as a blend of a few precomputed blurs of the whole
-image at scales 0.5 * 2^k pixels, interpolated per pixel in log-scale. Water pixels (no range) take the
-range of the nearby object (normalized convolution), so object light spreads into the water as a halo.
-Signature: lost edge and high-frequency energy, worse with range. Not invertible (a deconvolution).
+``J_w`` is Jaffe's filter itself, ``F^-1{exp(-B R f)}`` with ``f`` the angular frequency (cycles/rad) and
+``B R = 2 pi w``: the two-dimensional Poisson kernel ``J_w(rho) = w / (2 pi (rho^2 + w^2)^(3/2))``, whose
+``rho^-3`` tail carries a tenth of the light beyond ten widths (the wide halo of single small-angle scattering
+that measured underwater PSFs show). ``G_w`` is the Gaussian of standard deviation ``w`` to which many orders of
+small-angle scattering tend (the central limit: the halo gives way to a smooth blur); ``tail`` is the share of
+the light in Jaffe's kernel.
+
+The range-varying blur is computed from a few precomputed Gaussian blurs of the whole image at scales
+``SIGMA0 2^(k-1)`` pixels (k >= 1; level 0 is the image): ``G_w`` interpolates per pixel between the two levels
+around ``w`` in log-scale; ``J_w`` is their sum weighted by the Poisson kernel's Gaussian scale mixture (a
+Gaussian whose variance is Levy distributed with scale ``w^2``: the mass of ``sigma <= s`` is
+``erfc(w / (sqrt 2 s))``), each level taking the mass of its octave (edges at ``sqrt 2`` times a level's
+scale), the widest level (its scale at least the image's size, the image's mean in effect) the mass beyond.
+Water pixels (no range) take the range of the nearby object (normalized convolution), so object light spreads
+into the water as a halo. Signature: lost edge and high-frequency energy, worse with range, and light spread
+from the bright panel into the water around it. Not invertible (a deconvolution).
 """
 from __future__ import annotations
+
+import math
+import threading
 
 import cv2
 import numpy as np
@@ -23,6 +37,11 @@ import numpy as np
 from .base import Effect, EffectParam
 
 SIGMA0 = 0.5            # px, finest precomputed blur
+#: Table of ``erfc(2^x)`` on ``x`` in ``[-LUT_LO, LUT_HI]``, ``LUT_STEP`` apart: the mass of Jaffe's kernel below
+#: a level's lower edge (erfc(w / (sqrt 2 s)) with w / s = 2^x); beyond its ends it is 1 and 0 (erfc(2^-16) = 1 -
+#: 1e-5, erfc(16) = 0 to float32).
+LUT_LO, LUT_HI, LUT_STEP = 16.0, 4.0, 1.0 / 512
+_ERFC2 = np.array([math.erfc(2.0 ** x) for x in np.arange(-LUT_LO, LUT_HI + LUT_STEP / 2, LUT_STEP)], np.float32)
 
 
 def _blur_plane(x: np.ndarray, sigma: float, out=None) -> np.ndarray:
@@ -77,6 +96,19 @@ def _blur_small(img: np.ndarray, sigma: float, integral: list) -> np.ndarray:
 
 
 _flat: dict = {}
+_scratch = threading.local()
+
+
+def _buffer(name: str, shape: tuple, dtype=np.float32) -> np.ndarray:
+    """A work array of this thread's, kept between calls: a fresh one of the size of the levels' stack
+    (13 planes at 640x480, 16 MB) costs its page faults on every frame, 10-15 ms."""
+    bufs = getattr(_scratch, "bufs", None)
+    if bufs is None:
+        bufs = _scratch.bufs = {}
+    a = bufs.get(name)
+    if a is None or a.shape != shape or a.dtype != dtype:
+        a = bufs[name] = np.empty(shape, dtype)
+    return a
 
 
 def _flat_index(shape: tuple) -> np.ndarray:
@@ -111,11 +143,12 @@ class ForwardScatter(Effect):
     stage = "direct"
     invertible = False
     random_per_frame = False
-    summary = "range-dependent blur of the direct signal: fraction 1-exp(-strength r), PSF width ~ r"
+    summary = ("range-dependent blur of the direct signal: fraction 1-exp(-strength r), PSF width ~ r (Jaffe's "
+               "kernel and a Gaussian)")
     params = (
         EffectParam("strength", 0.0, 0.0, 1.5, "1/m", "forward-scattering coefficient: scattered fraction 1-exp(-strength r)"),
-        EffectParam("width", 8.0, 0.5, 40.0, "mrad/m", "angular sigma of the PSF per metre of range"),
-        EffectParam("tail", 0.3, 0.0, 1.0, "", "weight of the 4x wider PSF component (halo)"),
+        EffectParam("width", 8.0, 0.5, 40.0, "mrad/m", "angular scale of the PSF per metre of range"),
+        EffectParam("tail", 0.3, 0.0, 1.0, "", "share of the PSF in Jaffe's heavy-tailed kernel (the rest: Gaussian)"),
     )
     severities = {
         "mild": {"strength": 0.12, "width": 8.0, "tail": 0.3},
@@ -132,15 +165,22 @@ class ForwardScatter(Effect):
         r_eff, fx = terms.state[self.name]
         D = terms.D
         s = 1 - np.exp(-np.float32(values["strength"]) * r_eff)                # (H, W)
-        sigma = np.float32(fx * values["width"] * 1e-3) * r_eff                  # px
+        w_px = np.float32(fx * values["width"] * 1e-3) * r_eff                   # px: G's sigma and J's scale
         tail = float(values["tail"])
-        pos = self._pos(sigma)
-        pos_t = self._pos(4 * sigma)
-        n = int(np.ceil(max(pos.max(), pos_t.max() if tail > 0 else 0))) + 1
+        h, w = D.shape[1:]
+        pos = self._pos(w_px)
+        if tail > 0:
+            u = self._level(w_px)
+            n = self._top(h, w) + 1
+            # Jaffe's kernel below the lower edge of the level two under its scale: < erfc(4) = 2e-8 of its light
+            lowest = min(float(pos.min()) if tail < 1 else np.inf, float(u.min()) - 2)
+        else:
+            n = int(np.ceil(pos.max())) + 1
+            lowest = float(pos.min())
         # only the levels from the lowest one a pixel takes are made (at 640x480 with the strong preset, 5-14 of 0-14)
-        k0 = int(min(max(np.floor(min(pos.min(), pos_t.min() if tail > 0 else np.inf)), 0), n - 1))
-        at = self._index(pos, n, k0)                        # the same for every channel
-        at_t = self._index(pos_t, n, k0) if tail > 0 else None
+        k0 = int(min(max(np.floor(lowest), 0), n - 1))
+        at = self._index(pos, n, k0) if tail < 1 else None                       # the same for every channel
+        wj = self._jaffe_weights(u, n, k0) if tail > 0 else None
         # the wide levels' downsampled blurs of the three channels at once (OpenCV's filters on interleaved channels
         # are 1.5-2.5x faster than three planes), each resized back per channel
         wide = [k for k in range(k0, n) if SIGMA0 * 2 ** (k - 1) > 3.0]
@@ -149,9 +189,8 @@ class ForwardScatter(Effect):
             img = cv2.merge([D[0], D[1], D[2]])
             integral = [None]
             small = {k: cv2.split(_blur_small(img, SIGMA0 * 2 ** (k - 1), integral)) for k in wide}
-        h, w = D.shape[1:]
         blurred = np.empty_like(D)
-        levels = np.empty((n - k0,) + D.shape[1:], D.dtype)
+        levels = _buffer("levels", (n - k0,) + D.shape[1:], D.dtype)
         for c in range(3):
             for k in range(k0, n):
                 if k == 0:
@@ -160,11 +199,39 @@ class ForwardScatter(Effect):
                     cv2.resize(small[k][c], (w, h), dst=levels[k - k0], interpolation=cv2.INTER_LINEAR)
                 else:
                     _blur_plane(D[c], SIGMA0 * 2 ** (k - 1), out=levels[k - k0])
-            acc = self._interp(levels, at)
+            if tail < 1:
+                acc = self._interp(levels, at)
             if tail > 0:
-                acc = (1 - tail) * acc + tail * self._interp(levels, at_t)
+                j = np.einsum("khw,khw->hw", wj, levels)
+                acc = j if tail == 1 else (1 - tail) * acc + tail * j
             blurred[c] = acc
         D += s[None] * (blurred - D)
+
+    @staticmethod
+    def _level(w_px):
+        """Level index of a scale, not clipped below: ``1 + log2(w / SIGMA0)`` (level k's scale is SIGMA0 2^(k-1))."""
+        return (1 + np.log2(np.maximum(w_px, np.float32(1e-6)) / np.float32(SIGMA0))).astype(np.float32)
+
+    @staticmethod
+    def _top(h: int, w: int) -> int:
+        """The widest level: the first whose scale is at least the image's larger side."""
+        return 1 + int(math.ceil(math.log2(max(h, w) / SIGMA0)))
+
+    @staticmethod
+    def _jaffe_weights(u, n: int, k0: int) -> np.ndarray:
+        """Per pixel, the share of Jaffe's kernel of scale level ``u`` (:meth:`_level`) that each level ``k0..n-1``
+        carries, (n - k0, H, W): level k the Levy mixture's mass between its edges ``SIGMA0 2^(k-1) / sqrt 2`` and
+        ``sqrt 2`` times that (mass below the lower edge ``erfc(2^(u - k))``), level ``k0`` all below its upper edge,
+        the top level all beyond its lower edge."""
+        below = _buffer("below", (n - k0 + 1,) + u.shape)              # mass below each level's lower edge
+        below[0] = 0.0
+        below[-1] = 1.0
+        # the table's index of u - k is u's own less k / LUT_STEP (a whole number): rounded once
+        i = np.rint((u + np.float32(LUT_LO)) * np.float32(1 / LUT_STEP)).astype(np.intp)
+        per = int(round(1 / LUT_STEP))
+        for k in range(k0 + 1, n):
+            _ERFC2.take(i - per * k, mode="clip", out=below[k - k0])
+        return np.subtract(below[1:], below[:-1], out=_buffer("weights", (n - k0,) + u.shape))
 
     @staticmethod
     def _pos(sigma):
