@@ -101,7 +101,8 @@ _scratch = threading.local()
 
 def _buffer(name: str, shape: tuple, dtype=np.float32) -> np.ndarray:
     """A work array of this thread's, kept between calls: a fresh one of the size of the levels' stack
-    (13 planes at 640x480, 16 MB) costs its page faults on every frame, 10-15 ms."""
+    (13 planes at 640x480, 16 MB) costs its page faults on every frame (the Gaussian blur alone at 640x480: 17 ms
+    with fresh arrays, 9 ms with these)."""
     bufs = getattr(_scratch, "bufs", None)
     if bufs is None:
         bufs = _scratch.bufs = {}
@@ -177,7 +178,8 @@ class ForwardScatter(Effect):
         else:
             n = int(np.ceil(pos.max())) + 1
             lowest = float(pos.min())
-        # only the levels from the lowest one a pixel takes are made (at 640x480 with the strong preset, 5-14 of 0-14)
+        # only the levels from the lowest one a pixel takes are made (the Gaussian's: the one under its smallest sigma;
+        # Jaffe's kernel: two under its smallest scale, up to the image's size)
         k0 = int(min(max(np.floor(lowest), 0), n - 1))
         at = self._index(pos, n, k0) if tail < 1 else None                       # the same for every channel
         wj = self._jaffe_weights(u, n, k0) if tail > 0 else None
