@@ -1689,28 +1689,11 @@ def test_a_blur_too_fine_for_least_squares_is_found_by_the_refit(tmp_path, monke
     every start. The cheap refit (no CMA-ES) must still end on a fine blur (<= 3 mrad/m) that raises held-out θ
     (without the fine starts it ends on one of the wide starts: the plug-in's 6 mrad/m or that 7.5)."""
     import uw_sil.fit.judges.base as jb
-    from uw_sil.bags.synth import synthesize_trial, truth_path
-    from uw_sil.fit.diagfit import EffectModel
-    from uw_sil.fit.judges import JUDGES, Current, Job
-    from uw_sil.fit.judges.base import current_ls
-    from uw_sil.fit.residuals import load_frames, reduce_frame, split_frames
-    from uw_sil.sim.camera import CameraModel
+    from diagjobs import base_model_job
+    from uw_sil.fit.judges import JUDGES
 
-    bag = tmp_path / "t.mcap"
-    synthesize_trial(bag, n_frames=6, seed=3, camera=CameraModel.from_fov(320, 240),
-                     effects={"forward_scatter": {"strength": 0.5, "width": 1.0, "tail": 0.0}})
-    truth = json.loads(truth_path(bag).read_text())
-    fit_f, sel_f = split_frames(load_frames(bag, k=6))
-    R = {id(f): reduce_frame(f, 1) for f in fit_f + sel_f}
-    R_ls = {id(f): reduce_frame(f, 4) for f in fit_f + sel_f}
-    job = Job(fit_f=fit_f, sel_f=sel_f, R_hi=R, R_lo=R, R_ls=R_ls, fog="exp2", seed=0, max_iter=0, popsize=12,
-              patience=6, sigs={}, prox={}, judges=JUDGES)
-    base = np.array([truth["params"][k] for k in ("a_r", "a_g", "a_b", "b_r", "b_g", "b_b", "rho_f")])
-    model = EffectModel(job.reduced(fit_f), (), fog="exp2", seed=0)
-    x = model.x0(base)
-    cur = current_ls(job, Current(effects=(), values={}, base=base,
-                                  theta_fit=float(job.frame_theta(model, fit_f, x).mean()),
-                                  sel_pf=job.frame_theta(model, sel_f, x, seed_offset=50)[0], x=x, model=model))
+    _, job, cur = base_model_job(tmp_path, {"forward_scatter": {"strength": 0.5, "width": 1.0, "tail": 0.0}},
+                                 ls_factor=4)
 
     def too_wide(lmodel, x0, **kw):
         p = lmodel.params_of(np.asarray(x0, float))

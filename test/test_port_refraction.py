@@ -1,5 +1,4 @@
 """Flat-port refraction (:mod:`uw_sil.sim.effects.port_refraction`) and its diagnosis plug-in."""
-import json
 import math
 from types import SimpleNamespace
 
@@ -69,27 +68,11 @@ def test_the_plug_in_recovers_a_flat_ports_index_and_its_residual(tmp_path):
     """The diagnosis plug-in refits the port on an own trial with an uncorrected flat port (n 1.34): the fitted
     index within 0.03 of the truth, and its least-squares fit removes most of the held-out residual (measured: 83 %
     at 640x480; the held-out residual, not θ, accepts it: see the plug-in)."""
-    from uw_sil.bags.synth import synthesize_trial, truth_path
-    from uw_sil.fit.diagfit import EffectModel
-    from uw_sil.fit.judges import JUDGES, Current, Job
-    from uw_sil.fit.judges.base import current_ls, residual_gain
-    from uw_sil.fit.residuals import load_frames, reduce_frame, split_frames
+    from diagjobs import base_model_job
+    from uw_sil.fit.judges import JUDGES
+    from uw_sil.fit.judges.base import residual_gain
 
-    bag = tmp_path / "t.mcap"
-    synthesize_trial(bag, n_frames=6, seed=3, camera=CameraModel.from_fov(320, 240),
-                     effects={"port_refraction": "strong"})
-    truth = json.loads(truth_path(bag).read_text())
-    fit_f, sel_f = split_frames(load_frames(bag, k=6))
-    R = {id(f): reduce_frame(f, 1) for f in fit_f + sel_f}
-    R_ls = {id(f): reduce_frame(f, 2) for f in fit_f + sel_f}
-    job = Job(fit_f=fit_f, sel_f=sel_f, R_hi=R, R_lo=R, R_ls=R_ls, fog="exp2", seed=0, max_iter=0, popsize=12,
-              patience=6, sigs={}, prox={}, judges=JUDGES)
-    base = np.array([truth["params"][k] for k in ("a_r", "a_g", "a_b", "b_r", "b_g", "b_b", "rho_f")])
-    model = EffectModel(job.reduced(fit_f), (), fog="exp2", seed=0)
-    x = model.x0(base)
-    cur = current_ls(job, Current(effects=(), values={}, base=base,
-                                  theta_fit=float(job.frame_theta(model, fit_f, x).mean()),
-                                  sel_pf=job.frame_theta(model, sel_f, x, seed_offset=50)[0], x=x, model=model))
+    _, job, cur = base_model_job(tmp_path, {"port_refraction": "strong"}, ls_factor=2)
     r = JUDGES["port_refraction"].refit(job, cur)
     n = r.params["effects"]["port_refraction"]["n"] if "effects" in r.params else r.params["port_refraction.n"]
     assert abs(n - 1.34) < 0.03, n
