@@ -12,7 +12,7 @@ import numpy as np
 
 from ..diagfit import EffectModel, FrameObjective, noise_sigmas
 from ..residuals import base_sim
-from .base import Judge, Refit, bootstrap_se, margin_for
+from .base import Judge, Refit, margin_for
 
 def snow_refit(R_hi, fit_f, held_f, base_x, fog, seed, effects: tuple = (), values: Optional[dict] = None) -> dict:
     """Marine snow, fitted and judged by the density of small bright specks (new in every frame).
@@ -20,9 +20,11 @@ def snow_refit(R_hi, fit_f, held_f, base_x, fog, seed, effects: tuple = (), valu
     Density, brightness and size of the particles are chosen on the fit frames so that simulated frames (the
     current model + snow + the estimated camera noise) show as many bright specks per megapixel as the recording,
     of the same mean area, over the same haze between them (:func:`uw_sil.fit.signatures.speck_sizes`; a grid
-    over the three); on the held-out frames the count of the recording is compared with the current model's
-    and the candidate's (log densities), and the improvement is bootstrapped over frames. θ is also reported
-    (it cannot rise: particles are at random places).
+    over the three); on the held-out frames the specks of the recording are compared with the current model's
+    and the candidate's, pooled over the frames (:func:`pooled_count_gain`). Specks that are not particles
+    (:func:`not_particles`: the sensor's, at the same pixel in several frames of the recording, and the scene's, a
+    still point the model lacks seen again where the frames' poses put it) are counted neither in the recording nor
+    in the simulation. θ is also reported (it cannot rise: particles are at random places).
 
     ``effects``/``values``: the current model's effects, held at their values. The particles are lit by the
     model's lamps when it has them (else by a camera-mounted lamp) and pass through its camera response: fitted
@@ -39,22 +41,27 @@ def snow_refit(R_hi, fit_f, held_f, base_x, fog, seed, effects: tuple = (), valu
     effects = tuple(effects)
     fixed = {e: () for e in effects}
 
-    def frames_stats(rfs, x_list, eff_model, x_none, noise):
+    def simulated(k, rf, eff_model, x_none):
+        return luminance(255.0 * (eff_model.simulate(k, x_none[None])[0] if effects else base_sim(rf, base_x, fog)))
+
+    def frames_stats(rfs, x_list, eff_model, x_none, noise, excluded):
         """per frame: the recording's :func:`~uw_sil.fit.signatures.speck_sizes` (specks per megapixel, mean
-        speck area, haze between them), and the simulation's for each parameter vector in x_list: arrays (K, 3)
-        and (K, N, 3) (``x_none``: the model without particles, the noise-free simulation the specks are found
-        against; ``noise``: the frames' :func:`~uw_sil.fit.diagfit.noise_sigmas`)."""
+        speck area, haze between them, tested megapixels), and the simulation's for each parameter vector in
+        x_list: arrays (K, 4) and (K, N, 4) (``x_none``: the model without particles, the noise-free simulation the
+        specks are found against; ``noise``: the frames' :func:`~uw_sil.fit.diagfit.noise_sigmas`; ``excluded``:
+        per frame, the pixels of specks that are not particles' or None)."""
         out_real, out_sim = [], []
         for k, rf in enumerate(rfs):
-            S = luminance(255.0 * (eff_model.simulate(k, x_none[None])[0] if effects else base_sim(rf, base_x, fog)))
+            S = simulated(k, rf, eff_model, x_none)
             hit = rf.cover > 0
-            out_real.append(speck_sizes(luminance(rf.image), S, hit))
+            ex = excluded[k]
+            out_real.append(speck_sizes(luminance(rf.image), S, hit, ex))
             nf = NoiseField(rf.shape + (3,), noise[k], seed=seed + 31 * k)
             sims = eff_model.simulate(k, np.stack(x_list)) * 255.0
             row = []
             for img in sims:
                 nf.apply(img)
-                row.append(speck_sizes(luminance(img), S, hit))
+                row.append(speck_sizes(luminance(img), S, hit, ex))
             out_sim.append(row)
         return np.array(out_real), np.array(out_sim)
 
@@ -64,13 +71,17 @@ def snow_refit(R_hi, fit_f, held_f, base_x, fog, seed, effects: tuple = (), valu
     names = effects + ("marine_snow",)
     model = EffectModel(rfit, names, values=values, free=fixed, fog=fog, seed=seed)
     x_base = model.x0(base_x, {"marine_snow": {"density": 0.0}})
+    hmodel = model.like(rheld, seed=seed + 50)
+    excluded, sensor, scene_n = not_particles(list(fit_f) + list(held_f), rfit + rheld,
+                                              [simulated(k, rf, model, x_base) for k, rf in enumerate(rfit)]
+                                              + [simulated(k, rf, hmodel, x_base) for k, rf in enumerate(rheld)])
     # number, size and brightness of the particles: the speck count per megapixel and the specks' mean area (log
     # ratios; the area where both show specks), and the haze of the faint ones between them
     grid = [(d, b, z) for d in (0.0, 15.0, 40.0, 100.0, 250.0, 600.0, 1500.0, 3000.0) for b in (0.3, 0.75, 1.5, 3.0)
             for z in (0.5, 1.0, 2.0, 5.0)]
     xs = [model.x0(base_x, {"marine_snow": {"density": d, "brightness": b, "size": z}}) for d, b, z in grid]
     with remembered_draws():        # the grid's candidates of one density share their particles' places and light
-        real, sim = frames_stats(rfit, xs, model, x_base, noise_fit)
+        real, sim = frames_stats(rfit, xs, model, x_base, noise_fit, excluded[:len(rfit)])
     e_count = np.abs(np.log1p(sim[..., 0]) - np.log1p(real[:, None, 0]))
     e_area = np.abs(np.log(sim[..., 1]) - np.log(real[:, None, 1]))
     # the haze between the specks, in units of the frame's camera noise (luminance)
@@ -79,23 +90,75 @@ def snow_refit(R_hi, fit_f, held_f, base_x, fog, seed, effects: tuple = (), valu
     err = sum(np.where(np.isfinite(e), e, 0.0) for e in (e_count, e_area, e_haze)).mean(axis=0)
     j = int(np.argmin(err))
     x = xs[j]
-    hmodel = model.like(rheld, seed=seed + 50)
-    real_h, sim_h = frames_stats(rheld, [x_base, x], hmodel, x_base, noise_held)
-    real_h, sim_h = real_h[:, 0], sim_h[..., 0]            # judged on the count, as the signature reads it
-    e_base = np.abs(np.log1p(sim_h[:, 0]) - np.log1p(real_h))
-    e_cand = np.abs(np.log1p(sim_h[:, 1]) - np.log1p(real_h))
-    imp = e_base - e_cand
+    real_h, sim_h = frames_stats(rheld, [x_base, x], hmodel, x_base, noise_held, excluded[len(rfit):])
+    # judged on the count of specks, pooled over the held-out frames: a frame of a sparse snow shows 0-4 of them at
+    # this resolution, and a frame's log count (0 or 1 speck: a log density of 0 or 2.6) says more of chance than of
+    # the particles; pooled, the counts are compared as Poisson counts are, the margin bootstrapped over frames
+    c_real = real_h[:, 0] * real_h[:, 3]
+    c_sim = sim_h[..., 0] * sim_h[..., 3]
+    imp, imp_pf, boot = pooled_count_gain(c_real, c_sim[:, 0], c_sim[:, 1], seed=seed)
     with FrameObjective(rheld, hmodel, noise_held, seed=seed) as oh:
         held_pf = oh.per_frame(x[None])[0]
     unclaimed = unclaimed_theta(rheld, hmodel, x_base, x, seed=seed)
     with FrameObjective(rfit, model, noise_fit, seed=seed) as of:
         th_train = float(of(x[None])[0])
-    stat = {"name": "density of bright specks per megapixel", "real": float(np.mean(real_h)),
-            "base_sim": float(np.mean(sim_h[:, 0])), "candidate_sim": float(np.mean(sim_h[:, 1])),
-            "improvement": float(imp.mean()), "margin": max(0.15, 2.0 * bootstrap_se(imp, seed=seed)),
-            "per_frame_improvement": imp.tolist(), "theta_unclaimed": unclaimed}
+    stat = {"name": "density of bright specks per megapixel", "real": float(np.mean(real_h[:, 0])),
+            "base_sim": float(np.mean(sim_h[:, 0, 0])), "candidate_sim": float(np.mean(sim_h[:, 1, 0])),
+            "specks": {"real": float(c_real.sum()), "base_sim": float(c_sim[:, 0].sum()),
+                       "candidate_sim": float(c_sim[:, 1].sum())},
+            "not_particles": {"sensor_pixels": int(sensor[0].sum()), "scene_specks": scene_n},
+            "improvement": imp, "margin": max(0.15, 2.0 * float(np.std(boot))),
+            "per_frame_improvement": imp_pf.tolist(), "theta_unclaimed": unclaimed}
     return {"x": x, "theta_train": th_train, "held_pf": held_pf, "params": model.params_of(x),
             "model_effects": ["marine_snow"], "fit": None, "res": "high", "statistic": stat}
+
+
+def not_particles(frames, rframes, sims) -> tuple:
+    """Per reduced frame, the pixels of the recording's specks that are not particles, or None: the sensor's
+    (:func:`~uw_sil.fit.signatures.persistent_specks`, at the same pixel frame after frame, found at full
+    resolution) and the scene's (:func:`~uw_sil.fit.signatures.scene_specks`, a still point the model lacks, seen
+    again where the other frames' poses put it), each grown by a pixel. ``frames``: the full-resolution frames,
+    ``rframes`` their reduced frames, ``sims`` the noise-free simulation (luminance) each is compared with. Returns
+    ``(excluded, sensor, scene_count)``: the union and the sensor's masks per frame, and how many specks were the
+    scene's."""
+    import cv2
+
+    from ..residuals import dilate
+    from ..signatures import luminance, persistent_specks, reduce_mask, scene_specks, speck_masks
+
+    fixed = persistent_specks([f.image for f in frames])
+    sensor = [np.zeros(rf.shape, bool) if fixed is None else reduce_mask(fixed, rf.shape) for rf in rframes]
+    labels, points = [], []
+    for rf, S, sen in zip(rframes, sims, sensor):
+        pos = speck_masks(luminance(rf.image), S, rf.cover > 0)[0] & ~sen
+        n, lab, _, cen = cv2.connectedComponentsWithStats(pos.astype(np.uint8), 8)
+        labels.append(lab)
+        points.append((cen[1:] + 0.5) * rf.factor - 0.5)           # full-resolution pixel coordinates
+    scene = scene_specks(points, [f.pose for f in frames], frames[0].camera, [f.range_median for f in frames])
+    excluded = []
+    for lab, flags, sen in zip(labels, scene, sensor):
+        ex = sen.copy()
+        if flags.any():
+            ex |= dilate(np.isin(lab, 1 + np.flatnonzero(flags)), 1)
+        excluded.append(ex if ex.any() else None)
+    return excluded, sensor, int(sum(int(f.sum()) for f in scene))
+
+
+def pooled_count_gain(real, base, cand, n: int = 2000, seed: int = 0) -> tuple:
+    """How much closer the candidate's speck count comes to the recording's than the base model's, pooled over
+    frames: ``|log((B + 1/2) / (C_r + 1/2))| - |log((C + 1/2) / (C_r + 1/2))|`` with the sums ``C_r``, ``B``,
+    ``C`` of the per-frame counts ``real``, ``base``, ``cand`` (half a speck keeps an empty count finite); the
+    same per frame, and ``n`` bootstrap replicates (frames resampled with replacement): ``(gain, per_frame,
+    replicates)``."""
+    real, base, cand = (np.asarray(v, float) for v in (real, base, cand))
+
+    def gain(r, b, c):
+        r = r + 0.5
+        return np.abs(np.log((b + 0.5) / r)) - np.abs(np.log((c + 0.5) / r))
+
+    idx = np.random.default_rng(seed).integers(0, real.size, (n, real.size))
+    boot = gain(real[idx].sum(1), base[idx].sum(1), cand[idx].sum(1))
+    return float(gain(real.sum(), base.sum(), cand.sum())), gain(real, base, cand), boot
 
 
 #: A pixel is claimed by the particles where they change the noise-free simulation by more than this (grey levels).
