@@ -14,7 +14,7 @@ MAX_PLAUSIBLE_N = 1.40
 
 class PortRefractionJudge(Judge):
     effect = "port_refraction"
-    free = ("n", "dispersion")
+    free = ("n", "dispersion", "match_t")
     # the distortion moves edges by a few pixels near the panel's corners at the recording's size: judged where
     # they are a pixel or more
     res = "high"
@@ -70,8 +70,14 @@ class PortRefractionJudge(Judge):
     def start(self, job):
         return {"n": 1.15, "dispersion": 0.004}
 
+    #: Also from a sea-water port whose camera's focal length was matched a third of the way out (a calibration
+    #: without a distortion model): its image shrinks towards the centre inside that radius and stretches beyond.
+    #: On an own trial with that port (n 1.34, t0 0.3), least squares from n 1.15 matched at the centre ended at
+    #: n 1.13 matched at 0.20 (fit θ 0.910 against 0.958 from here).
+    alt_starts = ({"n": 1.34, "dispersion": 0.009, "match_t": 0.3},)
+
     def explain(self, e, gain, sig, camera=None):
-        n, d = e.get("n", 1.0), e.get("dispersion", 0.0)
+        n, d, t0 = e.get("n", 1.0), e.get("dispersion", 0.0), e.get("match_t", 0.0)
         where = ""
         if camera is not None:
             from ...sim.effects import get_effect
@@ -80,8 +86,12 @@ class PortRefractionJudge(Judge):
             shift = get_effect(self.effect).shift_px(e, camera, corner)
             where = f"the image's corners show what the pinhole model puts ~{shift:.0f} px nearer the centre, "
         colour = f"; blue bent {d:.3f} more than red (colour fringes at the edges)" if d >= 0.001 else ""
+        calib = ""
+        if t0 >= 0.02 and camera is not None:
+            calib = (f"; the camera's focal length agrees with the port ~{t0 * camera.fx:.0f} px from the centre "
+                     f"(nearer, the recording is shrunk towards it: a calibration without a distortion model)")
         return (f"the recording is stretched outwards more the further from the centre (pincushion), as a flat port "
-                f"bends the rays: {where}a water-to-air index ratio of {n:.3f}{colour}; {gain}")
+                f"bends the rays: {where}a water-to-air index ratio of {n:.3f}{colour}{calib}; {gain}")
 
     def ranges(self, e):
         n = e.get("n", 1.0)

@@ -10,7 +10,17 @@ outwards more the further from the centre (pincushion distortion, no free polyno
     t_recorded(t) = t / sqrt(1 - (n^2 - 1) t^2),  or, sampling the pinhole image,
     I(t) = I_pinhole(t / sqrt(1 + (n^2 - 1) t^2))                      (per pixel, about the principal point)
 
-with ``t`` from the camera's focal lengths. Water's index falls with wavelength (blue 1.340, green 1.336, red
+with ``t`` from the camera's focal lengths. That pinhole's focal length is the port's paraxial one. A camera
+calibrated in water without a distortion model, or calibrated in air and corrected by a focal length matched
+to the port somewhere off the centre, has a focal length that agrees with the port's image at a normalized
+radius ``t0`` (``match_t``) instead: the recorded image is the one above scaled by ``s = sqrt(1 - (n^2 - 1) t0^2)``
+(so that ``t0`` stays where it is: the centre shrinks towards the principal point, beyond ``t0`` the image is
+stretched outwards), and the pinhole image is sampled at
+
+    I(t) = I_pinhole(t / sqrt(s^2 + (n^2 - 1) t^2)) = I_pinhole(t / sqrt(1 + (n^2 - 1) (t^2 - t0^2)))
+
+(``t0`` 0: the paraxial focal length; a least-squares focal length over a 70 degree field lands near a third of
+the half-diagonal, t0 ~ 0.3). One focal length for the three channels: ``s`` is green's. Water's index falls with wavelength (blue 1.340, green 1.336, red
 1.331 at 450 / 550 / 650 nm): each colour channel is stretched by its own ``n`` (lateral colour, colour fringes
 that grow with the radius); ``dispersion`` is ``n_blue - n_red`` and green takes ``n``. Values: an uncorrected
 flat port in sea water n = 1.34 (a 640x480 camera with a 70 degree field records in its corners what the
@@ -41,6 +51,8 @@ class PortRefraction(Effect):
     params = (
         EffectParam("n", 1.0, 1.0, 1.5, "", "refractive index ratio water / air of the port's refraction (1: none)"),
         EffectParam("dispersion", 0.0, 0.0, 0.03, "", "n_blue - n_red (water: ~0.009); green takes n"),
+        EffectParam("match_t", 0.0, 0.0, 0.8, "", "normalized radius where the calibrated focal length agrees with "
+                    "the port (0: at the centre, the paraxial focal length)"),
     )
     severities = {
         "mild": {"n": 1.08, "dispersion": 0.003},     # what a partial calibration leaves of a flat port
@@ -57,23 +69,34 @@ class PortRefraction(Effect):
         return {"t2": t2, "du": du, "dv": dv, "cx": np.float32(camera.cx), "cy": np.float32(camera.cy),
                 "maps": {}}
 
+    def is_identity(self, values):
+        return float(values["n"]) == 1.0 and float(values["dispersion"]) == 0.0      # (match_t: of a port only)
+
     @staticmethod
     def indices(values) -> tuple:
         """``n`` of the red, green and blue channels."""
         n, d = float(values["n"]), float(values["dispersion"])
         return tuple(n + o * d for o in CHANNEL_OFFSETS)
 
-    def _map(self, state, n: float, inverse: bool):
+    @staticmethod
+    def scale2(values) -> float:
+        """``s^2 = 1 - (n^2 - 1) t0^2``: the calibrated focal length over the paraxial one, squared (green's)."""
+        n, t0 = float(values["n"]), float(values.get("match_t", 0.0))
+        return 1.0 - (n * n - 1.0) * t0 * t0
+
+    def _map(self, state, n: float, s2: float, inverse: bool):
         """(map_x, map_y) float32 for cv2.remap: where each pixel of the output samples its input."""
-        key = (round(n, 12), inverse)
+        key = (round(n, 12), round(s2, 12), inverse)
         hit = state["maps"].get(key)
         if hit is not None:
             return hit
         c = np.float32(n * n - 1.0)
-        if inverse:      # the pinhole image from a recorded one: t_recorded = t / sqrt(1 - (n^2 - 1) t^2)
-            k = 1.0 / np.sqrt(np.maximum(1.0 - c * state["t2"], np.float32(1e-6)))
-        else:
+        if inverse:      # the pinhole image from a recorded one: t_recorded = s t / sqrt(1 - (n^2 - 1) t^2)
+            k = np.float32(np.sqrt(s2)) / np.sqrt(np.maximum(1.0 - c * state["t2"], np.float32(1e-6)))
+        elif s2 == 1.0:
             k = 1.0 / np.sqrt(1.0 + c * state["t2"])
+        else:
+            k = 1.0 / np.sqrt(np.float32(s2) + c * state["t2"])
         out = ((state["cx"] + state["du"] * k).astype(np.float32), (state["cy"] + state["dv"] * k).astype(np.float32))
         if len(state["maps"]) >= 12:
             state["maps"].pop(next(iter(state["maps"])))
@@ -82,11 +105,12 @@ class PortRefraction(Effect):
 
     def _remap(self, I, state, values, inverse: bool) -> np.ndarray:
         out = np.empty_like(I)
+        s2 = self.scale2(values)
         for c, n in enumerate(self.indices(values)):
-            if n == 1.0:
+            if n == 1.0 and s2 == 1.0:
                 out[c] = I[c]
                 continue
-            mx, my = self._map(state, n, inverse)
+            mx, my = self._map(state, n, s2, inverse)
             cv2.remap(I[c], mx, my, cv2.INTER_LINEAR, dst=out[c], borderMode=cv2.BORDER_REPLICATE)
         return out
 
@@ -100,4 +124,4 @@ class PortRefraction(Effect):
         """How far (pixels, along x) from where the pinhole puts it the green channel records what it shows at
         normalized radius ``t``."""
         c = float(values["n"]) ** 2 - 1.0
-        return float(camera.fx * t * (1.0 - 1.0 / np.sqrt(1.0 + c * t * t)))
+        return float(camera.fx * t * (1.0 - 1.0 / np.sqrt(self.scale2(values) + c * t * t)))
