@@ -57,8 +57,8 @@ import numpy as np
 from .residuals import ReducedFrame, dilate, erode
 
 __all__ = ["Signature", "SignatureContext", "run_signatures", "luminance", "jsonable",
-           "speck_masks", "speck_sizes", "persistent_specks", "scene_specks", "reduce_mask", "particle_masks", "noise_statistics",
-           "NoisePixels", "trimmed_sigma", "median_filter"]
+           "speck_masks", "speck_sizes", "persistent_specks", "scene_specks", "reduce_mask", "particle_masks",
+           "noise_statistics", "NoisePixels", "trimmed_sigma", "median_filter"]
 
 _MAD = 1.4826
 _LUMA = np.array([0.299, 0.587, 0.114], np.float32)

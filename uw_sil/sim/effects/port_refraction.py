@@ -19,16 +19,16 @@ stretched outwards), and the pinhole image is sampled at
 
     I(t) = I_pinhole(t / sqrt(s^2 + (n^2 - 1) t^2)) = I_pinhole(t / sqrt(1 + (n^2 - 1) (t^2 - t0^2)))
 
-(``t0`` 0: the paraxial focal length; a least-squares focal length over a 70 degree field lands near a third of
-the half-diagonal, t0 ~ 0.3). One focal length for the three channels: ``s`` is green's. Water's index falls with wavelength (blue 1.340, green 1.336, red
-1.331 at 450 / 550 / 650 nm): each colour channel is stretched by its own ``n`` (lateral colour, colour fringes
-that grow with the radius); ``dispersion`` is ``n_blue - n_red`` and green takes ``n``. Values: an uncorrected
-flat port in sea water n = 1.34 (a 640x480 camera with a 70 degree field records in its corners what the
+(``t0`` 0: the paraxial focal length; a third of the half-diagonal of a 640x480 camera with a 70 degree field is t0
+~ 0.3). One focal length for the three channels: ``s`` is green's. Water's index falls with wavelength (blue 1.340,
+green 1.336, red 1.331 at 450 / 550 / 650 nm): each colour channel is stretched by its own ``n`` (lateral colour,
+colour fringes that grow with the radius); ``dispersion`` is ``n_blue - n_red`` and green takes ``n``. Values: an
+uncorrected flat port in sea water n = 1.34 (a 640x480 camera with a 70 degree field records in its corners what the
 pinhole shows 85 px nearer the centre); a calibration with a distortion model leaves a fraction of that (an
-effective n nearer 1). Neutral: n = 1, dispersion 0. A dome port centred on the pupil refracts no ray (nothing to
-model here); a port off the pupil makes the distortion depend on range (not modelled: a thin port at the pupil
-only). Last in the optics, first of the sensor stage: the lens's vignetting, the camera's response and noise come
-after it.
+effective n nearer 1). Neutral: n = 1, dispersion 0 (``match_t`` then changes nothing). A dome port centred on the
+pupil refracts no ray (nothing to model here); a port off the pupil makes the distortion depend on range (not
+modelled: a thin port at the pupil only). Last in the optics, first of the sensor stage: the lens's vignetting, the
+camera's response and noise come after it.
 """
 from __future__ import annotations
 
