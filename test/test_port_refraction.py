@@ -21,6 +21,13 @@ def _centroid_x(plane) -> float:
     return float((w * np.arange(plane.shape[1])).sum() / w.sum())
 
 
+def _smooth():
+    """A smooth test image (3, H, W) with structure at every radius."""
+    yy, xx = np.mgrid[0:CAM.height, 0:CAM.width].astype(np.float32)
+    return np.stack([0.5 + 0.3 * np.sin(xx / 9.0) * np.cos(yy / 7.0), 0.4 + 0.002 * xx,
+                     0.3 + 0.002 * yy]).astype(np.float32)
+
+
 @pytest.mark.parametrize("n", [1.08, 1.34])
 def test_a_point_lands_where_snells_law_puts_it_in_each_colour(n):
     """A small bright square the pinhole puts at normalized radius t is recorded at t / sqrt(1 - (n_c^2 - 1) t^2)
@@ -61,28 +68,16 @@ def test_a_focal_length_matched_off_the_centre_keeps_that_radius_and_shrinks_the
         want = CAM.cx + CAM.fx * s * tt / math.sqrt(1 - (n * n - 1) * tt * tt)
         assert abs(got - want) < 0.1, (t, got, want)
         assert np.sign(round(got - iu, 1)) == sign, (t, got, iu)
-    back = e.invert(e_apply(e, st, vals), SimpleNamespace(state={"port_refraction": st}), vals)
+    terms = SimpleNamespace(I=_smooth(), state={"port_refraction": st})
+    e.apply(terms, vals, None)
+    back = e.invert(terms.I, terms, vals)
     assert np.abs(back - _smooth())[:, 40:-40, 50:-50].max() < 0.02         # restored (the corners sample outside)
     assert e.is_identity({"n": 1.0, "dispersion": 0.0, "match_t": 0.4})     # no port: nothing to match
 
 
-def _smooth():
-    yy, xx = np.mgrid[0:CAM.height, 0:CAM.width].astype(np.float32)
-    return np.stack([0.5 + 0.3 * np.sin(xx / 9.0) * np.cos(yy / 7.0), 0.4 + 0.002 * xx,
-                     0.3 + 0.002 * yy]).astype(np.float32)
-
-
-def e_apply(e, st, vals):
-    terms = SimpleNamespace(I=_smooth(), state={"port_refraction": st})
-    e.apply(terms, vals, None)
-    return terms.I
-
-
 def test_restoring_undoes_the_refraction_and_neutral_values_change_nothing():
     e, st = _state()
-    yy, xx = np.mgrid[0:CAM.height, 0:CAM.width].astype(np.float32)
-    I = np.stack([0.5 + 0.3 * np.sin(xx / 9.0) * np.cos(yy / 7.0), 0.4 + 0.002 * xx,
-                  0.3 + 0.002 * yy]).astype(np.float32)
+    I = _smooth()
     vals = e.severity("strong")
     terms = SimpleNamespace(I=I.copy(), state={"port_refraction": st})
     e.apply(terms, vals, None)

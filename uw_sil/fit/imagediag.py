@@ -188,18 +188,15 @@ def _noise(frames) -> dict:
 
 def _particles(frames) -> dict:
     """Small bright (and dark) outliers against the frame's own 7x7 median (what a particle smaller than the
-    window leaves), counted away from the edges of larger structures (:func:`speck_masks` with the
-    median-filtered frame as the reference)."""
+    window leaves), counted away from the edges of larger structures (:func:`~uw_sil.fit.signatures.own_specks`)."""
     import cv2
 
-    from .signatures import median_filter, speck_masks
+    from .signatures import own_specks
 
     rows = []
     prev = None
     for name, img in frames:
-        Y = _lum(img)
-        S = median_filter(Y, 7)
-        pos, neg, ok = speck_masks(Y, S, np.zeros(Y.shape, bool))
+        pos, neg, ok = own_specks(_lum(img))
         npos = cv2.connectedComponentsWithStats(pos.astype(np.uint8), 8)[0] - 1
         nneg = cv2.connectedComponentsWithStats(neg.astype(np.uint8), 8)[0] - 1
         mp = max(ok.sum(), 1) / 1e6

@@ -57,7 +57,7 @@ import numpy as np
 from .residuals import ReducedFrame, dilate, erode
 
 __all__ = ["Signature", "SignatureContext", "run_signatures", "luminance", "jsonable",
-           "speck_masks", "speck_sizes", "persistent_specks", "scene_specks", "reduce_mask", "particle_masks",
+           "speck_masks", "speck_sizes", "own_specks", "persistent_specks", "scene_specks", "particle_masks",
            "noise_statistics", "NoisePixels", "trimmed_sigma", "median_filter"]
 
 _MAD = 1.4826
@@ -822,6 +822,12 @@ def speck_masks(R: np.ndarray, S: np.ndarray, hit: np.ndarray, k: float = 5.0):
     return (hp > k * scale) & ok, (hp < -k * scale) & ok, ok
 
 
+def own_specks(Y: np.ndarray) -> tuple:
+    """:func:`speck_masks` of a frame's luminance against its own 7x7 median (what a speck smaller than the window
+    leaves), no model: ``(pos, neg, ok)``."""
+    return speck_masks(Y, median_filter(Y, 7), np.zeros(Y.shape, bool))
+
+
 def speck_sizes(R: np.ndarray, S: np.ndarray, hit: np.ndarray, exclude: Optional[np.ndarray] = None) -> tuple:
     """(positive outlier blobs per megapixel of tested area, their mean area in pixels (nan without blobs), the
     median of ``R - S`` between them in grey levels, the tested area in megapixels): the statistics a particle
@@ -860,8 +866,7 @@ def persistent_specks(images, min_frames: int = PERSISTENT_FRAMES) -> Optional[n
         return None
     count = None
     for img in images:
-        Y = luminance(np.asarray(img, np.float32))
-        pos = speck_masks(Y, median_filter(Y, 7), np.zeros(Y.shape, bool))[0]
+        pos = own_specks(luminance(np.asarray(img, np.float32)))[0]
         count = pos.astype(np.uint8) if count is None else count + pos
     fixed = count >= min_frames
     return fixed if fixed.any() else None
@@ -916,15 +921,6 @@ def scene_specks(points, poses, camera, ranges, radius_px: float = 3.0, span=(0.
             met += (np.isfinite(d).reshape(uv.shape[:2]) & inside).any(axis=1)
         out[k] = (met >= 2) & (poisson.sf(met - 1, np.maximum(expected, 1e-12)) < alpha)
     return out
-
-
-def reduce_mask(mask: np.ndarray, shape, grow: int = 1) -> np.ndarray:
-    """A full-resolution mask at a reduced frame's ``(h, w)``: a reduced pixel is set where any full-resolution
-    pixel it averages is, grown by ``grow`` pixels."""
-    import cv2
-
-    m = cv2.resize(mask.astype(np.float32), (shape[1], shape[0]), interpolation=cv2.INTER_AREA) > 0
-    return dilate(m, grow) if grow else m
 
 
 def sig_marine_snow(ctx: SignatureContext) -> Signature:

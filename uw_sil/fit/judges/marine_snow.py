@@ -44,15 +44,15 @@ def snow_refit(R_hi, fit_f, held_f, base_x, fog, seed, effects: tuple = (), valu
     def simulated(k, rf, eff_model, x_none):
         return luminance(255.0 * (eff_model.simulate(k, x_none[None])[0] if effects else base_sim(rf, base_x, fog)))
 
-    def frames_stats(rfs, x_list, eff_model, x_none, noise, excluded):
+    def frames_stats(rfs, x_list, eff_model, refs, noise, excluded):
         """per frame: the recording's :func:`~uw_sil.fit.signatures.speck_sizes` (specks per megapixel, mean
         speck area, haze between them, tested megapixels), and the simulation's for each parameter vector in
-        x_list: arrays (K, 4) and (K, N, 4) (``x_none``: the model without particles, the noise-free simulation the
-        specks are found against; ``noise``: the frames' :func:`~uw_sil.fit.diagfit.noise_sigmas`; ``excluded``:
-        per frame, the pixels of specks that are not particles' or None)."""
+        x_list: arrays (K, 4) and (K, N, 4) (``refs``: per frame, the model without particles, the noise-free
+        simulation the specks are found against; ``noise``: the frames' :func:`~uw_sil.fit.diagfit.noise_sigmas`;
+        ``excluded``: per frame, the pixels of specks that are not particles' or None)."""
         out_real, out_sim = [], []
         for k, rf in enumerate(rfs):
-            S = simulated(k, rf, eff_model, x_none)
+            S = refs[k]
             hit = rf.cover > 0
             ex = excluded[k]
             out_real.append(speck_sizes(luminance(rf.image), S, hit, ex))
@@ -72,16 +72,16 @@ def snow_refit(R_hi, fit_f, held_f, base_x, fog, seed, effects: tuple = (), valu
     model = EffectModel(rfit, names, values=values, free=fixed, fog=fog, seed=seed)
     x_base = model.x0(base_x, {"marine_snow": {"density": 0.0}})
     hmodel = model.like(rheld, seed=seed + 50)
-    excluded, sensor, scene_n = not_particles(list(fit_f) + list(held_f), rfit + rheld,
-                                              [simulated(k, rf, model, x_base) for k, rf in enumerate(rfit)]
-                                              + [simulated(k, rf, hmodel, x_base) for k, rf in enumerate(rheld)])
+    s_fit = [simulated(k, rf, model, x_base) for k, rf in enumerate(rfit)]
+    s_held = [simulated(k, rf, hmodel, x_base) for k, rf in enumerate(rheld)]
+    excluded, sensor, scene_n = not_particles(list(fit_f) + list(held_f), rfit + rheld, s_fit + s_held)
     # number, size and brightness of the particles: the speck count per megapixel and the specks' mean area (log
     # ratios; the area where both show specks), and the haze of the faint ones between them
     grid = [(d, b, z) for d in (0.0, 15.0, 40.0, 100.0, 250.0, 600.0, 1500.0, 3000.0) for b in (0.3, 0.75, 1.5, 3.0)
             for z in (0.5, 1.0, 2.0, 5.0)]
     xs = [model.x0(base_x, {"marine_snow": {"density": d, "brightness": b, "size": z}}) for d, b, z in grid]
     with remembered_draws():        # the grid's candidates of one density share their particles' places and light
-        real, sim = frames_stats(rfit, xs, model, x_base, noise_fit, excluded[:len(rfit)])
+        real, sim = frames_stats(rfit, xs, model, s_fit, noise_fit, excluded[:len(rfit)])
     e_count = np.abs(np.log1p(sim[..., 0]) - np.log1p(real[:, None, 0]))
     e_area = np.abs(np.log(sim[..., 1]) - np.log(real[:, None, 1]))
     # the haze between the specks, in units of the frame's camera noise (luminance)
@@ -90,7 +90,7 @@ def snow_refit(R_hi, fit_f, held_f, base_x, fog, seed, effects: tuple = (), valu
     err = sum(np.where(np.isfinite(e), e, 0.0) for e in (e_count, e_area, e_haze)).mean(axis=0)
     j = int(np.argmin(err))
     x = xs[j]
-    real_h, sim_h = frames_stats(rheld, [x_base, x], hmodel, x_base, noise_held, excluded[len(rfit):])
+    real_h, sim_h = frames_stats(rheld, [x_base, x], hmodel, s_held, noise_held, excluded[len(rfit):])
     # judged on the count of specks, pooled over the held-out frames: a frame of a sparse snow shows 0-4 of them at
     # this resolution, and a frame's log count (0 or 1 speck: a log density of 0 or 2.6) says more of chance than of
     # the particles; pooled, the counts are compared as Poisson counts are, the margin bootstrapped over frames
@@ -123,11 +123,13 @@ def not_particles(frames, rframes, sims) -> tuple:
     scene's."""
     import cv2
 
-    from ..residuals import dilate
-    from ..signatures import luminance, persistent_specks, reduce_mask, scene_specks, speck_masks
+    from ..residuals import box_down, dilate
+    from ..signatures import luminance, persistent_specks, scene_specks, speck_masks
 
     fixed = persistent_specks([f.image for f in frames])
-    sensor = [np.zeros(rf.shape, bool) if fixed is None else reduce_mask(fixed, rf.shape) for rf in rframes]
+    # (a reduced pixel is the sensor's where any full-resolution pixel of its block is)
+    sensor = [np.zeros(rf.shape, bool) if fixed is None else dilate(box_down(fixed, rf.factor) > 0, 1)
+              for rf in rframes]
     labels, points = [], []
     for rf, S, sen in zip(rframes, sims, sensor):
         pos = speck_masks(luminance(rf.image), S, rf.cover > 0)[0] & ~sen

@@ -239,9 +239,7 @@ class ForwardScatter(Effect):
     def _pos(sigma):
         """Fractional level index of a blur sigma: 0 = no blur, k >= 1 = SIGMA0 * 2^(k-1)."""
         lin = sigma / np.float32(SIGMA0)
-        with np.errstate(divide="ignore"):
-            lg = 1 + np.log2(np.maximum(lin, 1e-6))
-        return np.where(lin < 1, lin, lg).astype(np.float32)
+        return np.where(lin < 1, lin, ForwardScatter._level(sigma)).astype(np.float32)
 
     @staticmethod
     def _index(pos, n: int, k0: int = 0) -> tuple:

@@ -93,8 +93,6 @@ class PortRefraction(Effect):
         c = np.float32(n * n - 1.0)
         if inverse:      # the pinhole image from a recorded one: t_recorded = s t / sqrt(1 - (n^2 - 1) t^2)
             k = np.float32(np.sqrt(s2)) / np.sqrt(np.maximum(1.0 - c * state["t2"], np.float32(1e-6)))
-        elif s2 == 1.0:
-            k = 1.0 / np.sqrt(1.0 + c * state["t2"])
         else:
             k = 1.0 / np.sqrt(np.float32(s2) + c * state["t2"])
         out = ((state["cx"] + state["du"] * k).astype(np.float32), (state["cy"] + state["dv"] * k).astype(np.float32))
