@@ -1392,6 +1392,7 @@ def test_doubts_lower_confidence():
     """A fitted value on its box bound or outside deep-sea ranges is said, and costs confidence."""
     from uw_sil.fit.diagnose import _confidence, base_doubts
     from uw_sil.fit.judges import JUDGES
+    from uw_sil.fit.judges.base import ON_BOUND
 
     lamp = JUDGES["artificial_light"]
     ok = {"offset_x": 0.4, "offset_y": -0.2, "toe_in": 0.1, "half_angle": 0.6, "shape": 2.0, "balance": 0.5,
@@ -1409,6 +1410,12 @@ def test_doubts_lower_confidence():
     pattern = noise.plausibility(dict(fitted, fpn=0.035))                # what one fit of a foreign dive gave
     assert len(pattern) == 1 and "3.5 %" in pattern[0] and "pixel gain pattern" in pattern[0]
     assert _confidence(3.0, []) > _confidence(3.0, ["x"]) > _confidence(3.0, ["x", "y"])
+    # parameters of one effect on their box's bounds are one doubt (one form the box cannot draw), a value out of
+    # a physical range one more
+    on_bound = lamp.plausibility(dict(ok, power=5.0, half_angle=1.4, toe_in=0.8))
+    assert len(on_bound) == 3 and all(ON_BOUND in d for d in on_bound), on_bound
+    assert _confidence(3.0, on_bound) == _confidence(3.0, on_bound[:1]) == _confidence(3.0, ["x"])
+    assert _confidence(3.0, on_bound + ["x"]) == _confidence(3.0, ["x", "y"])
     assert base_doubts({"a_r": 0.4, "a_g": 0.0004, "a_b": 0.1, "b_r": 0, "b_g": 0, "b_b": 0, "rho_f": 0.3})
     assert not base_doubts({"a_r": 0.4, "a_g": 0.1, "a_b": 0.1, "b_r": 0, "b_g": 0, "b_b": 0, "rho_f": 0.0})
 

@@ -47,6 +47,9 @@ from ..diagfit import (BASE_SIGMA0, EffectModel, FrameObjective, ModelFit, fit_m
 __all__ = ["Job", "Current", "Refit", "Judge", "theta_refit", "margin_for", "bootstrap_se", "z_multiple",
            "MIN_MARGIN", "MIN_RESIDUAL_MARGIN", "residual_gain", "residual_improvement", "current_ls"]
 
+#: The words of a doubt about a refitted parameter on a bound of its box (:meth:`Judge.plausibility`); such doubts
+#: of one effect count as one in its confidence (:func:`uw_sil.fit.diagnose._confidence`).
+ON_BOUND = "sits on its bound"
 #: Smallest held-out θ gain accepted, whatever the bootstrap says (the spread of four frames can be tiny).
 #: Measured null: on effect-free controls (bench_concealed.py, two own and two foreign seeds, 2026-11-27) the
 #: 28 round-1 refits of the smooth effects (all but compression, particles and noise) gained at most 0.0004
@@ -401,7 +404,7 @@ class Judge:
         from ...sim.effects import get_effect
 
         box = {p.name: p for p in get_effect(self.effect).params}
-        out = [f"{self.effect}.{n} = {values[n]:.3g} sits on its bound [{box[n].lo:g}, {box[n].hi:g}]"
+        out = [f"{self.effect}.{n} = {values[n]:.3g} {ON_BOUND} [{box[n].lo:g}, {box[n].hi:g}]"
                for n, _ in self.on_bounds(values) if n not in flat]
         return out + self.ranges(values)
 
