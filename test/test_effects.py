@@ -695,6 +695,39 @@ def test_marine_snow_sparse_positive_new_every_frame(frames, renderer):
     assert not np.array_equal(a, b)                                       # new particles every frame
 
 
+def test_marine_snow_defocus_spreads_the_near_particles_light():
+    """A lens focused at 2 m images a particle at 0.2 m as a disc of fx * A * |1/z - 1/focus| px: with an aperture the
+    near particles' light is spread (fainter peaks, the same light), a particle at the focus stays sharp, and
+    aperture 0 is the pinhole of before, bit for bit."""
+    from uw_sil.sim.effects.marine_snow import MarineSnow
+
+    cam = CameraModel.from_fov(320, 240)
+    h, w = 240, 320
+
+    def snow(z, values, seed=5):
+        depth = np.full((h, w), np.inf, np.float32)
+        terms = SimpleNamespace(camera=cam, shape=(h, w), geom=SimpleNamespace(depth=depth), lamps=None,
+                                a=np.array([0.3, 0.1, 0.08], np.float32))
+        import uw_sil.sim.effects.marine_snow as ms
+        saved = ms.Z_MIN, ms.Z_MAX
+        ms.Z_MIN, ms.Z_MAX = z, 1.1 * z                 # every particle within 10 % of depth z
+        try:
+            return MarineSnow().particles(terms, {**MarineSnow().defaults(), **values}, np.random.default_rng(seed))
+        finally:
+            ms.Z_MIN, ms.Z_MAX = saved
+
+    sharp = {"density": 3e5, "brightness": 1.0, "size": 0.5}
+    lens = dict(sharp, aperture=10.0, focus=2.0)
+    near0, near = snow(0.2, sharp), snow(0.2, lens)
+    disc = cam.fx * 10e-3 * (1 / 0.2 - 1 / 2.0)         # 10 px at 320 px wide
+    assert disc > 8
+    inner = (slice(None), slice(40, -40), slice(40, -40))
+    assert abs(near[inner].sum() / near0[inner].sum() - 1) < 0.05            # the light is conserved
+    assert near.max() < 0.25 * near0.max()                                   # spread over the disc
+    np.testing.assert_array_equal(snow(2.0, lens), snow(2.0, sharp))          # in focus: as sharp as before
+    np.testing.assert_array_equal(snow(0.2, dict(sharp, aperture=0.0)), near0)
+
+
 def test_sensor_noise_signal_dependent_and_fixed_pattern(frames, renderer):
     cam = renderer.camera
     grey = UnderwaterParams(a=(0.0, 0.0, 0.0), b=(0.5, 0.5, 0.5), rho_f=0.0)

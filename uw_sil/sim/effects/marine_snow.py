@@ -11,7 +11,13 @@ with ``lit`` the lamp irradiance at the particle: the vehicle lamps of ``artific
 effect is active, otherwise a camera-mounted lamp (Gaussian beam, half-angle 0.7 rad, ``1/z^2`` from
 1 m, ``exp(-a z)`` on the way out). Its image is a Gaussian blob of the particle's projected size
 (at least 0.5 px; smaller particles add proportionally less light), splatted with sub-pixel weights and
-blurred per size class. Particles behind the scene surface are hidden. The light is added to the veil
+blurred per size class (standard deviations 0.5-8 px in octaves; wider images are blurred by 8 px). A lens focused
+at ``focus`` with an entrance pupil of ``aperture`` mm images a particle at depth ``z`` as a disc of diameter
+``fx * aperture * |1/z - 1/focus|`` pixels (thin lens): the near particles of a camera focused on the work area are
+the large faint discs of ROV footage, not sharp specks. The disc is taken as a Gaussian of the same second moment
+(standard deviation a quarter of the diameter), combined with the particle's own size in quadrature; the light is
+conserved, so a defocused particle is fainter. ``aperture`` 0 (the default): a pinhole, every particle in focus.
+Particles behind the scene surface are hidden. The light is added to the veil
 term, so vignetting and the camera response act on it. Signature: sparse, positive, heavy-tailed
 outliers that do not persist between frames, concentrated in the lit volume. Not invertible.
 """
@@ -82,6 +88,9 @@ class MarineSnow(Effect):
         EffectParam("density", 0.0, 0.0, 3000.0, "1/m^3", "particles per cubic metre of water"),
         EffectParam("brightness", 0.6, 0.0, 3.0, "", "peak radiance of a fully resolved particle at unit irradiance"),
         EffectParam("size", 2.0, 0.3, 10.0, "mm", "mean particle diameter"),
+        EffectParam("aperture", 0.0, 0.0, 30.0, "mm", "lens entrance pupil diameter (defocus of particles off the "
+                    "focus; 0: in focus)"),
+        EffectParam("focus", 2.0, 0.3, 10.0, "m", "distance the lens is focused at"),
     )
     severities = {
         "mild": {"density": 60.0, "brightness": 0.6, "size": 1.5},
@@ -126,6 +135,9 @@ class MarineSnow(Effect):
         amp = values["brightness"] * lit * att                              # (M, 3) peak radiance
         d_px = fx * diam / z
         sigma = np.maximum(0.5, d_px / 2.8)
+        if values.get("aperture", 0.0) > 0:
+            disc = fx * values["aperture"] * 1e-3 * np.abs(1.0 / z - 1.0 / values["focus"])     # blur disc, px
+            sigma = np.sqrt(sigma * sigma + (disc / 4.0) ** 2)
         energy = amp * (np.pi / 4.0 * d_px * d_px)[:, None]                  # radiance x area (px^2)
         k = np.clip(np.rint(np.log2(sigma / 0.5)).astype(np.int64), 0, len(_SIGMA_BINS) - 1)
         out = np.zeros((3, h, w), np.float32)
