@@ -1062,6 +1062,23 @@ def test_a_plausible_explanation_is_chosen_before_a_stretched_one(bags, monkeypa
     assert any("vignetting passed over" in m and "planted doubt" in m for m in said), said
 
 
+def test_parameters_on_their_bounds_do_not_make_a_fit_implausible():
+    """A round ranks a fit after every plausible one only for values outside physical ranges; parameters on a bound
+    of their box are doubted (and said) but the candidate still ranks by its held-out gain."""
+    from uw_sil.fit.diagnose import out_of_range
+    from uw_sil.fit.judges import JUDGES
+
+    lamp = JUDGES["artificial_light"]
+    ok = {"offset_x": 0.4, "offset_y": -0.2, "toe_in": 0.1, "half_angle": 0.6, "shape": 2.0, "balance": 0.5,
+          "power": 1.0, "fill": 0.0, "veil": 0.01}
+    bound = lamp.plausibility(dict(ok, toe_in=0.8, offset_y=-1.0))
+    assert len(bound) == 2 and out_of_range(bound) == []
+    near = lamp.plausibility(dict(ok, offset_x=0.01, offset_y=0.0, toe_in=0.8))
+    assert len(near) == 2 and len(out_of_range(near)) == 1 and "0.3-1.5 m" in out_of_range(near)[0]
+    bc = JUDGES["backscatter_coefficient"].plausibility({"ratio_r": 5.9, "ratio_g": 1.0, "ratio_b": 1.0, "decay": 0.2})
+    assert out_of_range(bc) == bc != []
+
+
 def test_among_effects_that_raise_held_out_theta_beyond_their_margins_the_largest_gain_is_chosen():
     """Greedy forward selection adds the effect that raises held-out evidence most. Ranked by gain over margin, a
     steadier gain a tenth as large won (measured: vignetting +0.0138 in 4.6 margins over the lamps' +0.1441 in 4.5
@@ -1414,8 +1431,8 @@ def test_doubts_lower_confidence():
     # a physical range one more
     on_bound = lamp.plausibility(dict(ok, power=5.0, half_angle=1.4, toe_in=0.8))
     assert len(on_bound) == 3 and all(ON_BOUND in d for d in on_bound), on_bound
-    assert _confidence(3.0, on_bound) == _confidence(3.0, on_bound[:1]) == _confidence(3.0, ["x"])
-    assert _confidence(3.0, on_bound + ["x"]) == _confidence(3.0, ["x", "y"])
+    assert _confidence(3.0, []) > _confidence(3.0, on_bound) == _confidence(3.0, on_bound[:1]) > _confidence(3.0, ["x"])
+    assert _confidence(3.0, ["x"]) > _confidence(3.0, on_bound + ["x"]) > _confidence(3.0, ["x", "y"])
     assert base_doubts({"a_r": 0.4, "a_g": 0.0004, "a_b": 0.1, "b_r": 0, "b_g": 0, "b_b": 0, "rho_f": 0.3})
     assert not base_doubts({"a_r": 0.4, "a_g": 0.1, "a_b": 0.1, "b_r": 0, "b_g": 0, "b_b": 0, "rho_f": 0.0})
 
