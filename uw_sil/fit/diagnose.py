@@ -444,7 +444,8 @@ def undecided_effects(candidates: list, final_effects, held_neutral_at_end=()) -
     residual or moved the held-out statistics beyond the margin) and is not in the final model, because other
     effects explain as much of the same mismatch: another was chosen that round and it no longer beat its margin
     beside it, or the backward elimination dropped it (the model without it, refitted, was as good), or it
-    joined the model and the final model holds it at its neutral values (``held_neutral_at_end``).
+    joined the model and the final model holds it at its neutral values (``held_neutral_at_end``; or
+    :func:`held_faint`).
 
     Not a verdict: the frames hold evidence for it that the final model's effects account for too. Lamps and
     lens vignetting are the common case: a rig of lamps around the camera lights a facing panel with a falloff
@@ -469,7 +470,8 @@ def undecided_effects(candidates: list, final_effects, held_neutral_at_end=()) -
             end = (f"then dropped by the backward elimination: the model without it was as good ("
                    f"{_evidence_words(last)})")
         elif e in held_neutral_at_end:
-            end = "it joined the model, and the final model holds it at its neutral values (the model without it)"
+            end = ("it joined the model, and the final model holds it at its neutral values or within half a grey "
+                   "level of them (the model without it)")
         elif last.get("round") == best.get("round"):
             end = "it was not refitted beside the effects chosen after it"
         else:
@@ -625,6 +627,38 @@ def held_neutral(values: dict, camera=None) -> list:
     from .judges import JUDGES
 
     return [e for e, v in values.items() if JUDGES[e].neutral(v, camera)]
+
+
+#: Grey levels below which an effect's part of the final model's image is no part of it (:func:`held_faint`): half a
+#: grey level, less than an 8-bit frame can show.
+FAINT_DN = 0.5
+
+
+def held_faint(current, floor: float = FAINT_DN) -> list:
+    """The effects of the model ``current`` (a :class:`~uw_sil.fit.judges.base.Current`) whose fitted values change
+    no pixel of its fit frames by ``floor`` grey levels against the same vector with the effect's free parameters
+    at their defaults, where those are the effect's identity: the model without it in all but name. A fit can end
+    a hair from neutral, which :func:`held_neutral` does not catch (the literature generator's strong vignetting:
+    lamps accepted by the held-out residual of their least-squares fit, whose θ fit ended at fill 0.999999, a
+    millionth of the light from the lamps, and were named first)."""
+    from ..sim.effects import get_effect
+
+    if current.model is None or current.x is None:
+        return []
+    m, x = current.model, np.asarray(current.x, float)
+    names = m.names
+    out = []
+    for e in current.effects:
+        eff, idx = get_effect(e), m.free_index(e)
+        d = eff.defaults()
+        if idx.size == 0 or not eff.is_identity(d):
+            continue
+        xn = x.copy()
+        xn[idx] = [d[names[i].split(".", 1)[1]] for i in idx]
+        if all(255.0 * float(np.max(np.abs(np.subtract(*m.simulate(k, np.stack([x, xn])))))) < floor
+               for k in range(len(m.rframes))):
+            out.append(e)
+    return out
 
 
 def _as_refit(model, e: str):
@@ -1092,10 +1126,13 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
     # an effect the final model holds at its neutral values is the model without it: it is not named (a refit
     # can end where it started)
     idle = held_neutral(current.values, job.camera)
-    neutral = [a for a in accepted if a["effect"] in idle]
+    faint = [e for e in held_faint(current) if e not in idle]
+    neutral = [a for a in accepted if a["effect"] in idle or a["effect"] in faint]
     for a in neutral:
         accepted.remove(a)
-        say(f"{a['effect']} not named: the final model holds it at its neutral values")
+        say(f"{a['effect']} not named: the final model holds it at its neutral values" if a["effect"] in idle else
+            f"{a['effect']} not named: the final model holds it at values that change no pixel of the fit frames by "
+            f"{FAINT_DN} grey levels")
         steps.append({"round": "final", "model": current.name, "theta_heldout": float(current.sel_pf.mean()),
                       "residual_heldout": float(np.mean(current.ls_sel_E)), "theta_train": current.theta_fit,
                       "tried": [a["effect"]], "chosen": f"-{a['effect']}", "time_s": 0.0})
