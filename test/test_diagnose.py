@@ -86,6 +86,31 @@ def test_json_follows_the_schema(diagnoses):
         validate_diagnosis_json(broken)
 
 
+def test_the_camera_noise_is_judged_through_an_accepted_compression(tmp_path):
+    """The recording's noise passed the codec: JPEG's quantization smooths it within its blocks. Judged on uncompressed
+    simulations, that smoothing is taken for the sensor's own structure (own trial, its white camera noise, then JPEG
+    at quality 75: a 2 px correlation at zero shot and read noise, accepted; the literature generator's mild
+    compression was named structured sensor noise first). Judged through the accepted compression
+    (``Job.after_noise``), white shot and read noise passed through the codec matches the recording's statistics,
+    and the structure is not accepted."""
+    from dataclasses import replace
+
+    from diagjobs import base_model_job
+    from uw_sil.fit.judges import JUDGES
+    from uw_sil.sim.effects.compression import jpeg_roundtrip
+
+    def jpeg(img):
+        return np.clip(np.rint(255.0 * jpeg_roundtrip(img / 255.0, 75.0, subsample=True)), 0, 255).astype(np.uint8)
+
+    _, job, cur = base_model_job(tmp_path, {}, 4, recorded=jpeg)
+    noise = JUDGES["sensor_noise"]
+    plain = noise.refit(job, cur).statistic
+    coded = noise.refit(replace(job, after_noise={"compression": {"quality": 75.0, "chroma": 1.0}}), cur).statistic
+    assert plain["improvement"] > plain["margin"], plain                    # the codec's smoothing taken as structure
+    assert coded["improvement"] <= coded["margin"], coded
+    assert coded["base_sim"] < 0.2 * plain["base_sim"], (coded, plain)       # white noise through the codec fits
+
+
 def test_an_effect_a_hair_from_neutral_is_the_model_without_it(tmp_path):
     """An effect whose fitted values change no pixel of the fit frames by half a grey level is not named (lamps
     ended at fill 0.999999 and were named first); a millionth less fill still counts when it changes a pixel."""

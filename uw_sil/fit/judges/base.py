@@ -135,6 +135,9 @@ class Job:
     exclude : dict
         ``id(frame) -> (H, W) bool`` full-resolution pixels left out of noise statistics (surfaces an
         accepted geometry effect adds).
+    after_noise : dict
+        ``effect -> values`` of accepted effects the recording passed after the camera noise (the compression): the
+        noise plug-in simulates its candidates through them, as the camera's codec took the sensor's noise.
     interrupt : callable or None
         Called between optimizer iterations (raises to stop).
     pool : WorkerPool or None
@@ -158,6 +161,7 @@ class Job:
     judges: dict
     ls_nfev: int = 12
     exclude: dict = field(default_factory=dict)
+    after_noise: dict = field(default_factory=dict)
     interrupt: Optional[Callable] = None
     pool: Optional[object] = None
 
