@@ -302,8 +302,8 @@ class SensorNoiseJudge(Judge):
     def refit(self, job, current, x_starts=None, parent=None):
         # the effects the recording passed after its noise (an accepted compression) act on the candidates too
         r = noise_refit(job.fit_f, job.sel_f, current.base, self.signature(job), job.fog, job.seed, current.sel_pf,
-                        current.theta_fit, exclude=job.exclude or None, effects=current.effects + tuple(job.after_noise),
-                        values={**current.values, **job.after_noise})
+                        current.theta_fit, exclude=job.exclude or None,
+                        effects=current.effects + tuple(job.after_noise), values={**current.values, **job.after_noise})
         return Refit(effect=self.effect, effects=(self.effect,), x=r["x"], params=r["params"],
                      theta_fit=r["theta_train"], sel_pf=r["held_pf"], statistic=r["statistic"])
 

@@ -11,7 +11,7 @@ with ``lit`` the lamp irradiance at the particle: the vehicle lamps of ``artific
 effect is active, otherwise a camera-mounted lamp (Gaussian beam, half-angle 0.7 rad, ``1/z^2`` from
 1 m, ``exp(-a z)`` on the way out). Its image is a Gaussian blob of the particle's projected size
 (at least 0.5 px; smaller particles add proportionally less light), splatted with sub-pixel weights and
-blurred per size class (standard deviations 0.5-8 px in octaves; wider images are blurred by 8 px). A lens focused
+blurred per size class (standard deviations 0.5-8 px in octaves; a wider blob is blurred by 8 px). A lens focused
 at ``focus`` with an entrance pupil of ``aperture`` mm images a particle at depth ``z`` as a disc of diameter
 ``fx * aperture * |1/z - 1/focus|`` pixels (thin lens): the near particles of a camera focused on the work area are
 the large faint discs of ROV footage, not sharp specks. The disc is taken as a Gaussian of the same second moment
