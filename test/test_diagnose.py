@@ -1111,6 +1111,11 @@ def test_a_plausible_explanation_is_chosen_before_a_stretched_one(bags, monkeypa
     assert any("vignetting passed over" in m and "planted doubt" in m for m in said), said
 
 
+#: Fitted lamp values with no doubt about them (the two doubt tests move one or more of them).
+PLAUSIBLE_LAMPS = {"offset_x": 0.4, "offset_y": -0.2, "toe_in": 0.1, "half_angle": 0.6, "shape": 2.0, "balance": 0.5,
+                   "power": 1.0, "fill": 0.0, "veil": 0.01}
+
+
 def test_parameters_on_their_bounds_do_not_make_a_fit_implausible():
     """A round ranks a fit after every plausible one only for values outside physical ranges; parameters on a bound
     of their box are doubted (and said) but the candidate still ranks by its held-out gain."""
@@ -1118,8 +1123,7 @@ def test_parameters_on_their_bounds_do_not_make_a_fit_implausible():
     from uw_sil.fit.judges import JUDGES
 
     lamp = JUDGES["artificial_light"]
-    ok = {"offset_x": 0.4, "offset_y": -0.2, "toe_in": 0.1, "half_angle": 0.6, "shape": 2.0, "balance": 0.5,
-          "power": 1.0, "fill": 0.0, "veil": 0.01}
+    ok = dict(PLAUSIBLE_LAMPS)
     bound = lamp.plausibility(dict(ok, toe_in=0.8, offset_y=-1.0))
     assert len(bound) == 2 and out_of_range(bound) == []
     near = lamp.plausibility(dict(ok, offset_x=0.01, offset_y=0.0, toe_in=0.8))
@@ -1465,8 +1469,7 @@ def test_doubts_lower_confidence():
     from uw_sil.fit.judges.base import ON_BOUND
 
     lamp = JUDGES["artificial_light"]
-    ok = {"offset_x": 0.4, "offset_y": -0.2, "toe_in": 0.1, "half_angle": 0.6, "shape": 2.0, "balance": 0.5,
-          "power": 1.0, "fill": 0.0, "veil": 0.01}
+    ok = dict(PLAUSIBLE_LAMPS)
     assert lamp.plausibility(ok) == []                 # fill 0 (lamps alone) is physics, not a box edge
     near = dict(ok, offset_x=0.01, offset_y=0.0)
     assert any("0.3-1.5 m" in d for d in lamp.plausibility(near))

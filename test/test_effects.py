@@ -695,11 +695,11 @@ def test_marine_snow_sparse_positive_new_every_frame(frames, renderer):
     assert not np.array_equal(a, b)                                       # new particles every frame
 
 
-def test_marine_snow_defocus_spreads_the_near_particles_light():
+def test_marine_snow_defocus_spreads_the_near_particles_light(monkeypatch):
     """A lens focused at 2 m images a particle at 0.2 m as a disc of fx * A * |1/z - 1/focus| px: with an aperture the
     near particles' light is spread (fainter peaks, the same light), a particle at the focus stays sharp, and
     aperture 0 is the pinhole of before, bit for bit."""
-    from uw_sil.sim.effects.marine_snow import MarineSnow
+    import uw_sil.sim.effects.marine_snow as ms
 
     cam = CameraModel.from_fov(320, 240)
     h, w = 240, 320
@@ -708,13 +708,10 @@ def test_marine_snow_defocus_spreads_the_near_particles_light():
         depth = np.full((h, w), np.inf, np.float32)
         terms = SimpleNamespace(camera=cam, shape=(h, w), geom=SimpleNamespace(depth=depth), lamps=None,
                                 a=np.array([0.3, 0.1, 0.08], np.float32))
-        import uw_sil.sim.effects.marine_snow as ms
-        saved = ms.Z_MIN, ms.Z_MAX
-        ms.Z_MIN, ms.Z_MAX = z, 1.1 * z                 # every particle within 10 % of depth z
-        try:
-            return MarineSnow().particles(terms, {**MarineSnow().defaults(), **values}, np.random.default_rng(seed))
-        finally:
-            ms.Z_MIN, ms.Z_MAX = saved
+        monkeypatch.setattr(ms, "Z_MIN", z)
+        monkeypatch.setattr(ms, "Z_MAX", 1.1 * z)         # every particle within 10 % of depth z
+        snow = get_effect("marine_snow")
+        return snow.particles(terms, {**snow.defaults(), **values}, np.random.default_rng(seed))
 
     sharp = {"density": 3e5, "brightness": 1.0, "size": 0.5}
     lens = dict(sharp, aperture=10.0, focus=2.0)

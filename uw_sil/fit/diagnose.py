@@ -1104,6 +1104,12 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
         job.exclude = {id(f): added_surface(f, geo) for f in job.fit_f + job.sel_f}
     # side by side in the worker processes, as a round's refits (each judge refits only its own effect)
     stat_results = {}
+
+    def judged(e, r):
+        """``(margin, ok, strength, criterion)`` of a statistics plug-in's refit (corrected for their number)"""
+        margin = margin_for(r.sel_pf - current.sel_pf, len(stat_effects), seed=seed)
+        return (margin,) + tuple(JUDGES[e].accept(r, current, margin))
+
     if stat_effects:
         say(f"judging {', '.join(stat_effects)} on the held-out frames' statistics (new in every frame: θ "
             f"cannot rise)")
@@ -1115,16 +1121,14 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
         if codec:
             stat_results = _refit_all(workers, codec, job, current, say, "statistics", took, reference=False)
             r = stat_results["compression"]
-            margin = margin_for(r.sel_pf - current.sel_pf, len(stat_effects), seed=seed)
-            if JUDGES["compression"].accept(r, current, margin)[0]:
+            if judged("compression", r)[1]:
                 job = replace(job, after_noise={"compression": dict(r.params["effects"]["compression"])})
         rest = [e for e in stat_effects if e not in codec]
         if rest:
             stat_results.update(_refit_all(workers, rest, job, current, say, "statistics", took, reference=False))
     for e, r in stat_results.items():
         timing[f"statistics_{e}_s"] = r.extra["refit_s"]
-        margin = margin_for(r.sel_pf - current.sel_pf, len(stat_effects), seed=seed)
-        ok, strength, crit = JUDGES[e].accept(r, current, margin)
+        margin, ok, strength, crit = judged(e, r)
         row = _candidate_row(rnd + 1, current, e, r, margin, ok, strength, crit)
         candidates.append(row)
         # not held to ``max_effects``: that bounds the greedy search over the smooth effects; each of these is
