@@ -760,25 +760,12 @@ class _SampleBuilder:
                            f"image (P computed with alpha > 0): those repeat the border")
         return r(img)
 
-    #: Largest corrections accepted from the face alignment of a topic/tf pose (beyond: a false optimum).
-    MAX_CORRECTION_DEG = 5.0
-    MAX_CORRECTION_REL = 0.1
-
     def _refine(self, img, cam, T, info):
         """Refine a recorded pose by aligning the rendered panel face with the frame (``refine_pose='ecc'``)."""
-        from scipy.spatial.transform import Rotation
-
-        al = self.aligner.refine(img, cam, T, levels=(2, 1, 1))
-        if al.T is None:
-            return T, {**info, "refinement": f"none (ECC refinement refused: {al.reason})"}
-        dt = float(np.linalg.norm(al.T[:3, 3] - T[:3, 3]))
-        da = float(np.degrees(Rotation.from_matrix(T[:3, :3].T @ al.T[:3, :3]).magnitude()))
-        rng = float(np.linalg.norm(T[:3, 3]))
-        if da > self.MAX_CORRECTION_DEG or dt > self.MAX_CORRECTION_REL * rng:
-            return T, {**info, "refinement": f"none (ECC refinement refused: it moved the pose by {1000 * dt:.0f} mm "
-                                             f"and {da:.1f} deg, more than {self.MAX_CORRECTION_DEG:g} deg or "
-                                             f"{100 * self.MAX_CORRECTION_REL:g}% of the range)"}
-        return al.T, {**info, "refinement": "ecc", "ecc": al.ecc, "correction_mm": 1000 * dt, "correction_deg": da}
+        T_new, how = self.aligner.correct(img, cam, T)
+        if T_new is None:
+            return T, {**info, "refinement": f"none (ECC refinement refused: {how['refused']})"}
+        return T_new, {**info, "refinement": "ecc", **how}
 
     def sample(self, index: int, t: int, image_item, info_item, pose_item):
         """A Sample, or (None, reason) for a frame without a pose."""

@@ -81,7 +81,7 @@ import numpy as np
 
 from ..sim.params import RGB_NAMES
 from .diagfit import BASE_SIGMA0, BaseModel, EffectModel, FrameObjective, fit_model, noise_sigmas
-from .residuals import (LABEL_PANEL, ReducedFrame, base_sim, corrected_frame, locate, load_frames, reduce_frame,
+from .residuals import (LABEL_PANEL, ReducedFrame, base_sim, locate, load_frames, reduce_frame,
                         reduction_factor, residual_maps, set_aside, split_frames)
 
 __all__ = ["SCHEMA_VERSION", "Diagnosis", "diagnose_frames", "diagnose_bag", "write_diagnosis_yaml",
@@ -1203,7 +1203,9 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
         # frames no fit and no choice saw: the base and the final model scored on them (a pose correction the
         # final model holds is applied to their geometry, as to the others')
         t0 = time.perf_counter()
-        rep_final = [corrected_frame(f, current.absorbed) for f in report_f] if current.absorbed else list(report_f)
+        rep_final = list(report_f)
+        for e, values in current.absorbed.items():
+            rep_final = JUDGES[e].absorbed_frames(rep_final, values)
         job.R_hi.update({id(f): reduce_frame(f, f_hi) for f in {id(f): f for f in report_f + rep_final}.values()})
         report = {"base": job.frame_theta(empty, report_f, base_x[None], REPORT_SEED_OFFSET)[0],
                   "final": job.frame_theta(current.model, rep_final, np.asarray(current.x, float)[None],

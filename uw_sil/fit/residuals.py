@@ -26,7 +26,7 @@ import numpy as np
 
 __all__ = ["DiagFrame", "ReducedFrame", "box_down", "reduce_frame", "reduction_factor", "load_frames",
            "frames_from_samples", "split_frames", "base_sim", "residual_maps", "locate", "frame_geometry",
-           "added_surface", "corrected_frame", "render_scene", "LABEL_WATER", "LABEL_PANEL"]
+           "added_surface", "corrected_frame", "render_scene", "registered_pose", "LABEL_WATER", "LABEL_PANEL"]
 
 LABEL_WATER = 0
 LABEL_PANEL = 1
@@ -499,27 +499,45 @@ def _close_render():
         _RENDER.update(renderer=None, scene=None)
 
 
+def _scene_renderer(frame):
+    """The process's renderer of ``frame``'s scene with its camera (``_RENDER_LOCK`` held by the caller)."""
+    from ..sim.render import Renderer
+
+    rend, cached = _RENDER["renderer"], _RENDER["scene"]
+    # a mesh path compares by value (frames unpickled in a worker process carry copies), a loaded scene by identity
+    same = cached is frame.scene or (isinstance(cached, (str, os.PathLike)) and cached == frame.scene)
+    if rend is None or not same:
+        if rend is not None:
+            rend.close()
+        _RENDER["renderer"] = None
+        rend = Renderer(frame.scene, camera=frame.camera)
+        if not _RENDER.get("atexit"):
+            # closed before the interpreter tears its modules down (PyOpenGL cannot free its buffers then)
+            atexit.register(_close_render)
+            _RENDER["atexit"] = True
+        _RENDER.update(renderer=rend, scene=frame.scene)
+    elif rend.camera != frame.camera:
+        rend.camera = frame.camera
+    return rend
+
+
 def render_scene(frame, T_cam_panel):
     """The scene of ``frame`` (:attr:`DiagFrame.scene`) rendered at ``T_cam_panel`` with the frame's camera, full
     resolution. One renderer per process, kept for the next call of the same scene (a diagnosis renders its
     frames again at every pose refit; making the renderer costs more than a frame)."""
-    from ..sim.render import Renderer
+    with _RENDER_LOCK:
+        return _scene_renderer(frame).render(T_cam_panel)
+
+
+def registered_pose(frame):
+    """``(Delta, info)``: the correction of ``frame``'s recorded pose (``T = Delta @ T_recorded``) that aligns its
+    scene's rendered panel face with the frame itself, found for this frame alone by ECC
+    (:meth:`uw_sil.sim.align.FaceAligner.correct`: a homography, coarse to fine, invariant to the gain and offset the
+    water puts between the clean render and the frame; refused beyond 5 degrees or 10 % of the range). ``Delta`` is
+    None where the alignment is refused (``info["refused"]``: why)."""
+    from ..sim.align import FaceAligner
 
     with _RENDER_LOCK:
-        rend, cached = _RENDER["renderer"], _RENDER["scene"]
-        # a mesh path compares by value (frames unpickled in a worker process carry copies), a loaded scene by
-        # identity
-        same = cached is frame.scene or (isinstance(cached, (str, os.PathLike)) and cached == frame.scene)
-        if rend is None or not same:
-            if rend is not None:
-                rend.close()
-            _RENDER["renderer"] = None
-            rend = Renderer(frame.scene, camera=frame.camera)
-            if not _RENDER.get("atexit"):
-                # closed before the interpreter tears its modules down (PyOpenGL cannot free its buffers then)
-                atexit.register(_close_render)
-                _RENDER["atexit"] = True
-            _RENDER.update(renderer=rend, scene=frame.scene)
-        elif rend.camera != frame.camera:
-            rend.camera = frame.camera
-        return rend.render(T_cam_panel)
+        T, info = FaceAligner(frame.scene, renderer=_scene_renderer(frame)).correct(frame.image, frame.camera,
+                                                                                    frame.pose)
+    return (None if T is None else T @ np.linalg.inv(np.asarray(frame.pose, float))), info

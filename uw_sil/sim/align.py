@@ -83,19 +83,23 @@ class FaceAligner:
     max_pixels : int
         A face crop larger than this is aligned at half resolution at the finest level (plenty of
         precision, 4x faster).
+    renderer : Renderer, optional
+        A renderer of ``model`` to draw with (kept open by :meth:`close`); default one of its own.
     """
 
-    def __init__(self, model=None, plane: np.ndarray | None = None, min_ecc: float = 0.5, max_pixels: int = 60_000):
+    def __init__(self, model=None, plane: np.ndarray | None = None, min_ecc: float = 0.5, max_pixels: int = 60_000,
+                 renderer=None):
         self.model = model
         self.plane = np.eye(4) if plane is None else np.asarray(plane, dtype=float)
         self.min_ecc = float(min_ecc)
         self.max_pixels = int(max_pixels)
-        self._renderer = None
+        self._renderer = renderer
+        self._own = renderer is None
 
     def close(self) -> None:
-        if self._renderer is not None:
+        if self._renderer is not None and self._own:
             self._renderer.close()
-            self._renderer = None
+        self._renderer = None
 
     def __enter__(self):
         return self
@@ -103,6 +107,30 @@ class FaceAligner:
     def __exit__(self, *exc):
         self.close()
         return False
+
+    #: Largest correction of a recorded pose :meth:`correct` accepts (beyond it ECC found a false optimum).
+    MAX_CORRECTION_DEG = 5.0
+    MAX_CORRECTION_REL = 0.1
+
+    def correct(self, image: np.ndarray, camera: CameraModel, T0: np.ndarray, levels=(2, 1, 1)) -> tuple:
+        """A recorded pose ``T0`` refined (:meth:`refine`), refused where the refinement fails or moves it by more
+        than :data:`MAX_CORRECTION_DEG` or :data:`MAX_CORRECTION_REL` of its range: ``(T, info)``, ``T`` None when
+        refused with ``info["refused"]`` the reason, else ``info`` the ``ecc`` and the correction's size
+        (``correction_mm``, ``correction_deg``)."""
+        from scipy.spatial.transform import Rotation
+
+        T0 = np.asarray(T0, dtype=float)
+        al = self.refine(image, camera, T0, levels=levels)
+        if al.T is None:
+            return None, {"refused": al.reason}
+        dt = float(np.linalg.norm(al.T[:3, 3] - T0[:3, 3]))
+        da = float(np.degrees(Rotation.from_matrix(T0[:3, :3].T @ al.T[:3, :3]).magnitude()))
+        rng = float(np.linalg.norm(T0[:3, 3]))
+        if da > self.MAX_CORRECTION_DEG or dt > self.MAX_CORRECTION_REL * rng:
+            return None, {"refused": f"it moved the pose by {1000 * dt:.0f} mm and {da:.1f} deg, more than "
+                                     f"{self.MAX_CORRECTION_DEG:g} deg or {100 * self.MAX_CORRECTION_REL:g}% of the "
+                                     f"range"}
+        return al.T, {"ecc": al.ecc, "correction_mm": 1000 * dt, "correction_deg": da}
 
     def refine(self, image: np.ndarray, camera: CameraModel, T0: np.ndarray, levels=(1, 1)) -> Alignment:
         """Refine ``T0`` (``T_cam_panel``) against ``image`` (undistorted, of ``camera``).

@@ -377,6 +377,13 @@ class Judge:
             return True, residual[0] / residual[1], "residual"
         return False, gain / margin, "theta"
 
+    def absorbed_frames(self, frames: list, values: dict) -> list:
+        """Frames no refit saw (the report frames) with an accepted correction (``absorb``) of ``values`` applied
+        to their geometry, as :meth:`absorb_into` applied it to the selection's frames."""
+        from ..residuals import corrected_frame
+
+        return [corrected_frame(f, {self.effect: values}) for f in frames]
+
     # ------------------------------------------------------------------ words
 
     def explain(self, values: dict, gain: str, sig, camera=None) -> str:

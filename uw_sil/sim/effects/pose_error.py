@@ -176,6 +176,13 @@ class PoseError(Effect):
         D[:3, 3] = t
         return D
 
+    @staticmethod
+    def bias_of(D) -> dict:
+        """The bias values (``tx`` ... ``rz``) whose :meth:`correction` is the rigid 4x4 ``D``."""
+        r = cv2.Rodrigues(np.asarray(D, np.float64)[:3, :3])[0].ravel()
+        return {"tx": float(D[0, 3]), "ty": float(D[1, 3]), "tz": float(D[2, 3]),
+                "rx": float(r[0]), "ry": float(r[1]), "rz": float(r[2])}
+
     def apply(self, terms, values, rng):
         D = self.correction(values, rng)
         if np.allclose(D, np.eye(4), atol=0, rtol=0):
