@@ -50,16 +50,13 @@ def image_shift(frames, values: dict, rms: bool = False) -> float:
     """Largest displacement (pixels) of the model's surface points in the frames' images under the correction
     ``values`` (bias only); ``rms``: their root mean square over the points instead (of the last frame)."""
     from ...sim.effects import get_effect
-    from ...sim.model import Geometry
 
     eff = get_effect("pose_error")
     D = eff.correction(eff.values({**values, "jitter_t": 0.0, "jitter_r": 0.0}))
     out = 0.0
     for f in frames:
-        g = Geometry.from_render(f.render, f.camera, f.pose)      # cached per render (reduce_frame's too)
-        X = g.X[g.hit].astype(float)
-        X = X[::max(1, len(X) // 4000)]
-        Y = X @ D[:3, :3].T + D[:3, 3]
+        X = _surface_points(f, 4000)
+        Y = _moved(D, X)
         ok = Y[:, 2] > 1e-6
         if ok.any():
             d = f.camera.project(Y[ok]) - f.camera.project(X[ok])
@@ -69,6 +66,8 @@ def image_shift(frames, values: dict, rms: bool = False) -> float:
 
 
 _REGISTERED = {}
+#: The effect's box, ``name -> (lo, hi)``.
+_BOX = {p.name: (p.lo, p.hi) for p in PoseError.params}
 
 
 def registration(frame):
@@ -81,8 +80,7 @@ def registration(frame):
     if key not in _REGISTERED:
         D, _ = registered_pose(frame)
         v = None if D is None else PoseError.bias_of(D)
-        box = {p.name: (p.lo, p.hi) for p in PoseError.params}
-        _REGISTERED[key] = v if v is not None and all(box[k][0] <= x <= box[k][1] for k, x in v.items()) else None
+        _REGISTERED[key] = v if v is not None and all(_BOX[k][0] <= x <= _BOX[k][1] for k, x in v.items()) else None
     return _REGISTERED[key]
 
 
@@ -105,8 +103,6 @@ def per_frame(job, current, bias: dict, sel_bias: np.ndarray) -> dict:
     the margin, the fit frames (``fit``, their θ ``theta_fit``), the bias (``bias``, the one correction nearest to
     the frames' own) and the rest as ``jitter_r`` (rad per axis: the turn that displaces the images alike;
     ``jitter_t`` 0)."""
-    from ...sim.effects import get_effect
-
     frames = list(job.fit_f) + list(job.sel_f)
     vals = [registration(f) for f in frames]
     corr = [v if v is not None else bias for v in vals]
@@ -124,17 +120,15 @@ def per_frame(job, current, bias: dict, sel_bias: np.ndarray) -> dict:
         # lie 0.3-1.8 px from the bias and lower held-out θ in every round)
         fit_c = [corrected_frame(f, {"pose_error": v}) for f, v in zip(job.fit_f, corr)]
         out.update(fit=fit_c, theta_fit=float(_score_current(job, current, fit_c, 0).mean()))
-        box = {q.name: (q.lo, q.hi) for q in get_effect("pose_error").params}
-        lo, hi = ({k: b[i] for k, b in box.items()} for i in (0, 1))
         # one frame cannot tell a sideways shift from a turn: its homography splits them at random (an effect-free
         # control's registrations spread by 10 mm and 0.13° per axis, which cancel to 0.14-0.33 px in the image).
         # So the bias is the one correction that moves every frame's points nearest to where its registration put
         # them, and the jitter the turn that displaces the images alike (a displacement of two Gaussian axes of
         # sigma fx * jitter_r has a mean square of 2 (fx jitter_r)²)
         bias, rms = bias_of_registrations([f for f, v in zip(frames, vals) if v is not None], got)
-        out["bias"] = {k: float(np.clip(v, lo[k], hi[k])) for k, v in bias.items()}
+        out["bias"] = {k: float(np.clip(v, *_BOX[k])) for k, v in bias.items()}
         out["jitter_t"] = 0.0
-        out["jitter_r"] = float(np.clip(np.sqrt(np.mean(np.square(rms)) / 2.0), 0.0, hi["jitter_r"]))
+        out["jitter_r"] = float(np.clip(np.sqrt(np.mean(np.square(rms)) / 2.0), *_BOX["jitter_r"]))
     return out
 
 
@@ -142,7 +136,7 @@ def _surface_points(frame, n: int = 600) -> np.ndarray:
     """About ``n`` of the frame's surface points (recorded camera frame, metres)."""
     from ...sim.model import Geometry
 
-    g = Geometry.from_render(frame.render, frame.camera, frame.pose)
+    g = Geometry.from_render(frame.render, frame.camera, frame.pose)      # cached per render (reduce_frame's too)
     X = g.X[g.hit].astype(float)
     return X[::max(1, len(X) // n)]
 
