@@ -688,7 +688,8 @@ def _rank(plausible: bool, crit: str, strength: float, r, current) -> tuple:
     """Order of a round's accepted candidates, best last. A physically plausible explanation first (no doubt of
     :func:`out_of_range`): a fit with its values outside deep-sea ranges is stretched to mimic something else
     (β_B/β_D = 6 taking the veil of lamps). Then θ, the paper's criterion: the residual decides only where no
-    candidate raised θ (it is the likelihood of the dark, noisy frames θ is blind to, not a rival ranking of the others).
+    candidate raised θ (it is the likelihood of the dark, noisy frames θ is blind to, not a rival ranking of the
+    others).
     Among θ's, the largest held-out gain: the effect that raises the held-out evidence most (its margin has
     been passed; gain over margin let a steadier effect a tenth as large win: vignetting's +0.014 over the
     lamps' +0.144 on a lamp-lit field recording, and on a physical dive camera_response's +0.0069 over forward

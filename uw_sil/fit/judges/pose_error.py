@@ -17,9 +17,9 @@ nearest frame from 1334 to 791 grey levels², registering that frame alone to 35
 on its own (:func:`~uw_sil.fit.residuals.registered_pose`: the panel face aligned by ECC, which the water's gain and
 offset do not move), and where the frames rendered at their own poses score a held-out θ above the bias's by a
 margin, the correction is per frame: the bias is the one correction nearest to all of theirs in the image, the
-jitter the rest, and the frames keep their own poses for the rest of the selection (the report frames too). A registration reads the
-geometry of a frame, not its photometry; what a held-out frame then shows of the water and the other effects is
-still predicted by parameters fitted on the fit frames.
+jitter the rest, and the frames keep their own poses for the rest of the selection (the report frames too). A
+registration reads the geometry of a frame, not its photometry; what a held-out frame then shows of the water and the
+other effects is still predicted by parameters fitted on the fit frames.
 
 With the lamps in the model, the least-squares fit and the held-out residual take the lamps' cast shadows of the
 recorded view through the warps (:func:`uw_sil.sim.effects.pose_error.carrying_shadows`) instead of testing
@@ -66,6 +66,7 @@ def image_shift(frames, values: dict, rms: bool = False) -> float:
 
 
 _REGISTERED = {}
+_REGISTERED_MAX = 256
 #: The effect's box, ``name -> (lo, hi)``.
 _BOX = {p.name: (p.lo, p.hi) for p in PoseError.params}
 
@@ -78,6 +79,8 @@ def registration(frame):
     key = (frame.index, np.asarray(frame.pose, float).tobytes(),
            hashlib.blake2b(np.ascontiguousarray(frame.image).tobytes(), digest_size=16).digest())
     if key not in _REGISTERED:
+        if len(_REGISTERED) >= _REGISTERED_MAX:     # a live node diagnoses again and again: keep the latest frames'
+            _REGISTERED.clear()
         D, _ = registered_pose(frame)
         v = None if D is None else PoseError.bias_of(D)
         _REGISTERED[key] = v if v is not None and all(_BOX[k][0] <= x <= _BOX[k][1] for k, x in v.items()) else None
