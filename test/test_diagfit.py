@@ -266,3 +266,15 @@ def test_the_cos4_law_of_a_wide_lens_is_a_vignetting_within_its_box(near_frame):
     got = model.params_of(x)["effects"]["vignetting"]
     assert got["n"] == pytest.approx(4.0, abs=0.3), got
     assert not JUDGES["vignetting"].plausibility(got), got
+
+
+def test_a_model_that_absorbed_a_pose_correction_says_so_in_its_name():
+    """A pose correction is applied to the frames, not held among the model's effects: the model's name (the key of
+    its fit in the report's figures and the selection's steps) names it all the same. Without it the report drew
+    "no effect accepted" for a pose error named alone, and its fit took the base model's place in the figures."""
+    from uw_sil.fit.judges.base import Current
+
+    cur = Current(effects=("vignetting",), values={}, base=np.zeros(7), theta_fit=0.0, sel_pf=np.zeros(4))
+    assert cur.name == "base + vignetting"
+    cur.absorbed = {"pose_error": {"tx": 0.01}}
+    assert cur.name == "base + pose_error + vignetting"

@@ -1216,7 +1216,7 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
         timing["report_s"] = time.perf_counter() - t0
     timing["total_s"] = time.perf_counter() - t_all
     not_judged = [{"effect": e, "reason": s.reason} for e, s in sigs.items() if not s.judged]
-    final_key = current.name if current.effects else None
+    final_key = current.name if current.effects or current.absorbed else None
     diag = Diagnosis(
         verdict=verdict, candidates=candidates,
         base={"theta_train": base_theta_train, "theta_heldout": float(base_sel_pf.mean()),
@@ -1241,6 +1241,8 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
         undecided=undecided_effects(candidates, final_effects, [a["effect"] for a in neutral]),
         figures={"rframes": rall, "sims": sims, "res": res, "sigs": sigs, "prox": prox, "fits": fits,
                  "base_x": base_x, "fog": fog, "held": [R_hi[id(f)] for f in held_f],
+                 # the final model and the held-out frames it is scored on (corrected where it absorbed a pose)
+                 "final": (current.model, np.asarray(current.x, float), [job.R_hi[id(f)] for f in job.sel_f]),
                  "base_held_pf": base_sel_pf, "final_key": final_key})
     return diag
 

@@ -129,14 +129,15 @@ def models_figure(diag):
     F = diag.figures
     held = F["held"]
     key = F["final_key"]
-    fits = F["fits"]
     from .residuals import base_sim
 
     rows = held[:3]
     fig, axes = plt.subplots(len(rows), 4, figsize=(13.5, 2.6 * len(rows)), squeeze=False)
     ext = None
     if key is not None:
-        ext = fits[key]["model"].like(rows)
+        # the final model on the frames it was scored on (their geometry corrected where it absorbed a pose error)
+        final_model, final_x, final_rows = F["final"]
+        ext = final_model.like(final_rows[:len(rows)])
     for k, (ax, rf) in enumerate(zip(axes, rows)):
         g = display_gain(rf.image / 255.0)          # (the same on the recording and its simulations)
         ax[0].imshow(np.clip(g * rf.image / 255.0, 0, 1))
@@ -147,7 +148,7 @@ def models_figure(diag):
         ax[1].set_title(f"base model{gain_words(g)}", fontsize=8)
         se = sb
         if ext is not None:
-            se = ext.simulate(k, fits[key]["x"][None])[0]
+            se = ext.simulate(k, final_x[None])[0]
             ax[2].imshow(np.clip(g * se, 0, 1))
             # (wrapped: a model of three or four effects ran into the next column's title)
             ax[2].set_title("\n".join(textwrap.wrap(f"extended model: {key}{gain_words(g)}", 56)), fontsize=8)

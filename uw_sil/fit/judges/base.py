@@ -222,7 +222,8 @@ class Current:
 
     @property
     def name(self) -> str:
-        return " + ".join(("base",) + self.effects)
+        """``base + e1 + ...``: the corrections applied to the frames (``absorbed``) first, then the effects."""
+        return " + ".join(("base",) + tuple(self.absorbed) + self.effects)
 
 
 @dataclass
