@@ -75,6 +75,54 @@ def test_a_focal_length_matched_off_the_centre_keeps_that_radius_and_shrinks_the
     assert e.is_identity({"n": 1.0, "dispersion": 0.0, "match_t": 0.4})     # no port: nothing to match
 
 
+def _traced(t: float, n: float, d: float, z: float) -> float:
+    """The recorded normalized radius of the ray that reaches pinhole radius ``t`` at planar depth ``z``: from the
+    pupil at ``theta_a`` (tan = n t_r, the focal length matched at the centre) to the port at ``d``, then in water at
+    ``theta_w`` (Snell), found by bisection."""
+    lo, hi = 0.0, 2.0
+    for _ in range(60):
+        tr = 0.5 * (lo + hi)
+        ta = n * tr
+        sw = ta / math.sqrt(1 + ta * ta) / n
+        radius = d * ta + (z - d) * sw / math.sqrt(1 - sw * sw)
+        lo, hi = (lo, tr) if radius / z > t else (tr, hi)
+    return 0.5 * (lo + hi)
+
+
+@pytest.mark.parametrize("d", [0.03, 0.1])
+def test_a_port_off_the_pupil_records_a_point_where_the_traced_ray_meets_it(d):
+    """A port ``pupil_d`` in front of the entrance pupil: the ray leaves the pupil, bends at the port and reaches the
+    point at its depth, so what is recorded depends on range (a near panel drawn smaller than the pinhole draws it).
+    A small bright square on a wall 1.2 m away is recorded where the ray traced through the port puts it (to a
+    tenth of a pixel, at three radii); open water (infinity) as through a thin port at the pupil; restoring with the
+    depth undoes it."""
+    depth = np.full((CAM.height, CAM.width), 1.2, np.float32)
+    e = get_effect("port_refraction")
+    st = e.prepare(SimpleNamespace(shape=depth.shape, depth=depth), CAM)
+    vals = {"n": 1.34, "dispersion": 0.0, "pupil_d": d}
+    for t in (0.1, 0.3, 0.45):
+        I = np.zeros((3, CAM.height, CAM.width), np.float32)
+        u0, v0 = int(round(CAM.cx + t * CAM.fx)), int(round(CAM.cy))
+        I[:, v0 - 1:v0 + 2, u0 - 1:u0 + 2] = 1.0
+        terms = SimpleNamespace(I=I, state={"port_refraction": st})
+        e.apply(terms, vals, None)
+        got = _centroid_x(terms.I[1])
+        tt = (u0 - CAM.cx) / CAM.fx
+        assert abs(got - (CAM.cx + CAM.fx * _traced(tt, 1.34, d, 1.2))) < 0.1, (t, got)
+        assert got < CAM.cx + CAM.fx * _traced(tt, 1.34, 0.0, 1.2) - (0.3 if t > 0.2 else 0.0), (t, got)
+    far = e.prepare(SimpleNamespace(shape=depth.shape, depth=np.full_like(depth, np.inf)), CAM)
+    imgs = []
+    for st_, v in ((far, vals), (far, {**vals, "pupil_d": 0.0})):
+        terms = SimpleNamespace(I=_smooth(), state={"port_refraction": st_})
+        e.apply(terms, v, None)
+        imgs.append(terms.I)
+    assert np.array_equal(imgs[0], imgs[1])
+    terms = SimpleNamespace(I=_smooth(), state={"port_refraction": st})
+    e.apply(terms, vals, None)
+    back = e.invert(terms.I, terms, vals)
+    assert np.abs(back - _smooth())[:, 40:-40, 50:-50].max() < 0.02
+
+
 def test_restoring_undoes_the_refraction_and_neutral_values_change_nothing():
     e, st = _state()
     I = _smooth()

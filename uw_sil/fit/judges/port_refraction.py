@@ -14,6 +14,9 @@ MAX_PLAUSIBLE_N = 1.40
 
 class PortRefractionJudge(Judge):
     effect = "port_refraction"
+    # (not ``pupil_d``: a port off the pupil changes a near panel's scale by (n - 1) d / z, 0.6 % at 1.5 m for 2.5 cm,
+    # a quarter pixel at the least-squares fits' 80 px and the same as a pose error along the axis; freed, it was
+    # fitted 0 in both refits of a literature dive with a port 2.5-3.5 cm off the pupil)
     free = ("n", "dispersion", "match_t")
     # the distortion moves edges by a few pixels near the panel's corners at the recording's size: judged where
     # they are a pixel or more
