@@ -1135,7 +1135,10 @@ def test_parameters_on_their_bounds_do_not_make_a_fit_implausible():
 def test_among_effects_that_raise_held_out_theta_beyond_their_margins_the_largest_gain_is_chosen():
     """Greedy forward selection adds the effect that raises held-out evidence most. Ranked by gain over margin, a
     steadier gain a tenth as large won (measured: vignetting +0.0138 in 4.6 margins over the lamps' +0.1441 in 4.5
-    on a lamp-lit field recording). Plausible before doubted and θ before the residual still come first."""
+    on a lamp-lit field recording). Plausible before doubted still comes first; then every candidate that raises
+    held-out θ by its gain, whichever test accepted it (a literature dive's flat port, accepted by its residual
+    with +0.029 held-out θ, ranked after a forward scatter's +0.012 by θ when θ's acceptances came first); those
+    accepted by the residual that do not raise θ after them, by the residual's margins."""
     from types import SimpleNamespace
 
     from uw_sil.fit.diagnose import _rank
@@ -1145,8 +1148,11 @@ def test_among_effects_that_raise_held_out_theta_beyond_their_margins_the_larges
     vignetting = SimpleNamespace(sel_pf=current.sel_pf + [0.013, 0.014, 0.0145, 0.0137])
     assert _rank(True, "theta", 4.5, lamps, current) > _rank(True, "theta", 4.6, vignetting, current)
     assert _rank(True, "theta", 1.1, vignetting, current) > _rank(False, "theta", 40.0, lamps, current)
-    assert _rank(True, "theta", 1.1, vignetting, current) > _rank(True, "residual", 40.0, lamps, current)
-    assert _rank(True, "residual", 3.0, lamps, current) > _rank(True, "residual", 2.0, vignetting, current)
+    assert _rank(True, "residual", 1.1, lamps, current) > _rank(True, "theta", 4.6, vignetting, current)
+    falls = SimpleNamespace(sel_pf=current.sel_pf - 0.001)
+    assert _rank(True, "theta", 1.1, vignetting, current) > _rank(True, "residual", 40.0, falls, current)
+    level = SimpleNamespace(sel_pf=current.sel_pf)
+    assert _rank(True, "residual", 3.0, level, current) > _rank(True, "residual", 2.0, falls, current)
 
 
 def test_lamps_too_close_to_the_camera_are_held_at_the_nearest_possible_distance_in_the_same_direction():

@@ -210,3 +210,31 @@ def test_the_residual_names_a_port_only_where_theta_rises_too(theta_gain, named)
     r = SimpleNamespace(sel_pf=np.full(4, 0.80 + theta_gain), extra={})
     ok, _, crit = JUDGES["port_refraction"].accept(r, cur, 0.0077, residual=(0.108, 0.05))
     assert ok is named and (crit == "residual" or not named)
+
+
+def test_a_port_accepted_by_its_residual_is_refitted_on_theta_not_kept_at_its_least_squares_fit(tmp_path,
+                                                                                                 monkeypatch):
+    """An effect accepted by the held-out residual keeps its least-squares fit where θ is blind; a port is accepted
+    by it only where θ rises too, so its model is θ's: refitted with the full budget from its least-squares and θ
+    fits, as a θ acceptance is. (A literature dive's strong port kept at its least-squares fit scored held-out θ
+    +0.0009, its θ refit +0.028, and a forward scatter beside it then stayed below its margin.) Planted: the port
+    accepted by the residual on an own strong-port trial; it is chosen and refitted with the full budget (kept at
+    its least-squares fit, it was not refitted)."""
+    from uw_sil.bags.synth import synthesize_trial, truth_path
+    from uw_sil.fit.diagnose import diagnose_bag
+    from uw_sil.fit.judges import JUDGES
+
+    bag = tmp_path / "port.mcap"
+    synthesize_trial(bag, n_frames=6, seed=3, camera=CameraModel.from_fov(160, 120), effects={"port_refraction":
+                                                                                               "strong"})
+    truth_path(bag).unlink()
+    pj = type(JUDGES["port_refraction"])
+    monkeypatch.setattr(pj, "accept", lambda self, r, current, margin, residual=None:
+                        (True, 1000.0, "residual") if not current.effects else (False, 0.0, "theta"))
+    said = []
+    doc = diagnose_bag(bag, k=6, effects_allowed=["port_refraction"], max_effects=1, progress=said.append).to_json()
+    assert doc["selection"][0]["chosen"] == "port_refraction", doc["selection"]
+    full = [c for c in doc["candidates"] if c["effect"] == "port_refraction" and c.get("full_refit")]
+    assert len(full) == 1 and full[0]["criterion"] == "residual", full
+    assert any("refitting base + port_refraction with the full budget" in m for m in said), said
+    assert not any("port_refraction declined" in m for m in said), said

@@ -687,14 +687,16 @@ def out_of_range(doubts: list) -> list:
 def _rank(plausible: bool, crit: str, strength: float, r, current) -> tuple:
     """Order of a round's accepted candidates, best last. A physically plausible explanation first (no doubt of
     :func:`out_of_range`): a fit with its values outside deep-sea ranges is stretched to mimic something else
-    (β_B/β_D = 6 taking the veil of lamps). Then θ, the paper's criterion: the residual decides only where no
-    candidate raised θ (it is the likelihood of the dark, noisy frames θ is blind to, not a rival ranking of the
-    others).
-    Among θ's, the largest held-out gain: the effect that raises the held-out evidence most (its margin has
-    been passed; gain over margin let a steadier effect a tenth as large win: vignetting's +0.014 over the
-    lamps' +0.144 on a lamp-lit field recording, and on a physical dive camera_response's +0.0069 over forward
-    scatter's +0.0265). Among the residual's, the gain in margins (:meth:`~uw_sil.fit.judges.base.Judge.accept`)."""
-    return (plausible, crit == "theta", float(np.mean(r.sel_pf - current.sel_pf)) if crit == "theta" else strength)
+    (β_B/β_D = 6 taking the veil of lamps). Then θ, the paper's criterion: every accepted candidate that raises
+    held-out θ, by its gain, whichever held-out test accepted it (the test says the effect is there; the gain says
+    how much of the mismatch it takes). The residual's strength ranks only those that do not raise θ (the dark,
+    noisy frames θ is blind to). Ranked by gain over margin, a steadier effect a tenth as large won (vignetting's
+    +0.014 over the lamps' +0.144 on a lamp-lit field recording, and on a physical dive camera_response's +0.0069
+    over forward scatter's +0.0265). Ranked with θ's acceptances first, a flat port that raised held-out θ most
+    (+0.029, every held-out frame up, more the nearer: a wide bootstrap margin; its residual 76 % lower) came after
+    a forward scatter's +0.012 on a literature dive, and a pose bias then took its place."""
+    gain = float(np.mean(r.sel_pf - current.sel_pf))
+    return (plausible, gain > 0.0, gain if gain > 0.0 else strength)
 
 
 def _refit_pinned(cheap, current, oks: list, n_cands: int, candidates: list, rnd: int, seed: int,
@@ -978,7 +980,8 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
             best, r_full = None, None
             for choice in oks:
                 e, r, strength, margin, crit, _ = choice
-                if crit == "residual" and "ls_x" in r.extra:    # (pose_error's own residual: it is absorbed)
+                if crit == "residual" and "ls_x" in r.extra and JUDGES[e].adopts_least_squares:
+                    # (pose_error's own residual: it is absorbed)
                     # the model a residual acceptance adopts is the least-squares fit. The residual decides only
                     # where θ is blind; θ scores that fit too, and where it falls by more than the least change a
                     # θ gain is ever credited with (MIN_MARGIN), θ is not blind there: it says the simulation got

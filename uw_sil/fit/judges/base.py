@@ -299,6 +299,11 @@ class Judge:
     # (phase congruency, gradients) sees, and whose least-squares fits also soak up leftovers of other effects
     # (measured: forward scatter "accepted" by the residual, 27 % less, next to lamps on a lamps-only trial)
     residual_evidence: bool = False
+    # accepted by the held-out residual, the model adopted is its least-squares fit (the model the evidence is
+    # about: a θ refit drifts back to the model without it where θ is blind); False for an effect accepted by the
+    # residual only where θ rises as well (:meth:`accept` of the flat port): θ is not blind to it, and it is
+    # refitted on θ with the full budget, as a θ acceptance is
+    adopts_least_squares: bool = True
 
     # ------------------------------------------------------------------ settings
 
