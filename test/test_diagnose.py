@@ -717,8 +717,8 @@ def plant_first_choice(monkeypatch):
     import uw_sil.fit.diagnose as dg
 
     real = dg._rank
-    monkeypatch.setattr(dg, "_rank", lambda plausible, crit, strength, r, current:
-                        (True, True, np.inf) if strength >= 1e3 else real(plausible, crit, strength, r, current))
+    monkeypatch.setattr(dg, "_rank", lambda plausible, strength, r, current:
+                        (True, True, np.inf) if strength >= 1e3 else real(plausible, strength, r, current))
 
 
 def test_backward_elimination_drops_an_effect_a_later_one_explains(bags, monkeypatch):
@@ -1146,13 +1146,13 @@ def test_among_effects_that_raise_held_out_theta_beyond_their_margins_the_larges
     current = SimpleNamespace(sel_pf=np.full(4, 0.80))
     lamps = SimpleNamespace(sel_pf=current.sel_pf + [0.10, 0.20, 0.13, 0.15])       # +0.1441, noisy
     vignetting = SimpleNamespace(sel_pf=current.sel_pf + [0.013, 0.014, 0.0145, 0.0137])
-    assert _rank(True, "theta", 4.5, lamps, current) > _rank(True, "theta", 4.6, vignetting, current)
-    assert _rank(True, "theta", 1.1, vignetting, current) > _rank(False, "theta", 40.0, lamps, current)
-    assert _rank(True, "residual", 1.1, lamps, current) > _rank(True, "theta", 4.6, vignetting, current)
+    assert _rank(True, 4.5, lamps, current) > _rank(True, 4.6, vignetting, current)
+    assert _rank(True, 1.1, vignetting, current) > _rank(False, 40.0, lamps, current)
+    assert _rank(True, 1.1, lamps, current) > _rank(True, 4.6, vignetting, current)   # (by θ's test or the residual's)
     falls = SimpleNamespace(sel_pf=current.sel_pf - 0.001)
-    assert _rank(True, "theta", 1.1, vignetting, current) > _rank(True, "residual", 40.0, falls, current)
+    assert _rank(True, 1.1, vignetting, current) > _rank(True, 40.0, falls, current)
     level = SimpleNamespace(sel_pf=current.sel_pf)
-    assert _rank(True, "residual", 3.0, level, current) > _rank(True, "residual", 2.0, falls, current)
+    assert _rank(True, 3.0, level, current) > _rank(True, 2.0, falls, current)
 
 
 def test_lamps_too_close_to_the_camera_are_held_at_the_nearest_possible_distance_in_the_same_direction():

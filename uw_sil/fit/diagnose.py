@@ -684,7 +684,7 @@ def out_of_range(doubts: list) -> list:
     return [d for d in doubts if ON_BOUND not in d]
 
 
-def _rank(plausible: bool, crit: str, strength: float, r, current) -> tuple:
+def _rank(plausible: bool, strength: float, r, current) -> tuple:
     """Order of a round's accepted candidates, best last. A physically plausible explanation first (no doubt of
     :func:`out_of_range`): a fit with its values outside deep-sea ranges is stretched to mimic something else
     (β_B/β_D = 6 taking the veil of lamps). Then θ, the paper's criterion: every accepted candidate that raises
@@ -734,7 +734,7 @@ def _refit_pinned(cheap, current, oks: list, n_cands: int, candidates: list, rnd
                                             residual_improvement(current, rp), rgain),
                            "doubts": doubts, "pinned": dict(pins)})
         if ok and not out_of_range(doubts):
-            out.append((e, rp, s2, margin, c2, _rank(True, c2, s2, rp, current)))
+            out.append((e, rp, s2, margin, c2, _rank(True, s2, rp, current)))
             jobs[e] = job_e
         else:
             out.append(choice)
@@ -971,7 +971,7 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
                 rows.append({**_candidate_row(rnd, current, e, r, margin, ok, strength, crit, imp, rgain),
                              "doubts": doubts, **({"flat_bounds": list(flat)} if flat else {}),
                              **({"neutral": True} if r.extra.get("neutral") else {})})
-                rank = _rank(not out_of_range(doubts), crit, strength, r, current)
+                rank = _rank(not out_of_range(doubts), strength, r, current)
                 if ok:
                     oks.append((e, r, strength, margin, crit, rank))
             candidates += rows

@@ -81,12 +81,18 @@ class PortRefraction(Effect):
         t2 = (x * x + y * y).astype(np.float32)
         du = np.broadcast_to((np.arange(w, dtype=np.float32) - np.float32(camera.cx))[None, :], (h, w))
         dv = np.broadcast_to((np.arange(h, dtype=np.float32) - np.float32(camera.cy))[:, None], (h, w))
-        depth = getattr(geom, "depth", None)
-        # inverse planar depth per pixel (0: open water, at infinity), for a port off the pupil
-        w = None if depth is None else np.where(np.isfinite(depth) & (depth > 0), 1.0 / np.maximum(depth, 1e-6),
-                                                0.0).astype(np.float32)
         return {"t2": t2, "du": du, "dv": dv, "cx": np.float32(camera.cx), "cy": np.float32(camera.cy),
-                "w": w, "maps": {}}
+                "depth": getattr(geom, "depth", None), "maps": {}}
+
+    @staticmethod
+    def _inverse_depth(state):
+        """Inverse planar depth per pixel (0: open water, at infinity), made when a port off the pupil first needs
+        it; None without a depth map."""
+        if "w" not in state:
+            depth = state["depth"]
+            state["w"] = None if depth is None else np.where(
+                np.isfinite(depth) & (depth > 0), 1.0 / np.maximum(depth, 1e-6), 0.0).astype(np.float32)
+        return state["w"]
 
     def is_identity(self, values):
         return float(values["n"]) == 1.0 and float(values["dispersion"]) == 0.0   # (match_t, pupil_d: of a port only)
@@ -105,7 +111,7 @@ class PortRefraction(Effect):
 
     def _map(self, state, n: float, s2: float, inverse: bool, d: float = 0.0):
         """(map_x, map_y) float32 for cv2.remap: where each pixel of the output samples its input."""
-        w = state.get("w")
+        w = self._inverse_depth(state) if d > 0.0 else None
         d = d if w is not None else 0.0           # (no depth: every point at infinity, where d changes nothing)
         key = (round(n, 12), round(s2, 12), inverse, round(d, 12))
         hit = state["maps"].get(key)
@@ -113,6 +119,7 @@ class PortRefraction(Effect):
             return hit
         c = np.float32(n * n - 1.0)
         t2, s2f = state["t2"], np.float32(s2)
+        a = np.float32(n / np.sqrt(s2))           # t_pinhole / t_recorded of a ray through the port at d, per d/z
         if inverse:      # the pinhole image from a recorded one: t_recorded = s t / sqrt(1 - (n^2 - 1) t^2)
             k = np.float32(np.sqrt(s2)) / np.sqrt(np.maximum(1.0 - c * t2, np.float32(1e-6)))
             if d > 0.0:
@@ -122,7 +129,7 @@ class PortRefraction(Effect):
                 dw = np.float32(d) * w
                 q = t2 * k * k
                 for _ in range(6):
-                    K = dw * np.float32(n / np.sqrt(s2)) + (1.0 - dw) / np.sqrt(s2f + c * q)
+                    K = dw * a + (1.0 - dw) / np.sqrt(s2f + c * q)
                     q = t2 / (K * K)
                 k = 1.0 / K
         else:
@@ -130,7 +137,7 @@ class PortRefraction(Effect):
             if d > 0.0:
                 # t_pinhole / t_recorded = (d/z) n / s + (1 - d/z) k_thin, z the depth of the point recorded: the
                 # pinhole's depth where the thin port's mapping samples, then where this one does
-                k_thin, a = k, np.float32(n / np.sqrt(s2))
+                k_thin = k
                 for _ in range(2):
                     wq = cv2.remap(w, (state["cx"] + state["du"] * k).astype(np.float32),
                                    (state["cy"] + state["dv"] * k).astype(np.float32), cv2.INTER_NEAREST,
