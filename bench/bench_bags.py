@@ -1,10 +1,11 @@
 """Bag read speed: synchronized samples (image, camera_info, panel pose) per second from MCAP and SQLite3 bags.
 
 Writes ``--frames`` 640x480 frames (a smooth image with noise, ``rgb8``; with ``--jpeg`` a third bag of the same
-frames as ``sensor_msgs/CompressedImage`` JPEG q95) with camera_info, pose and TF, as ``uw-sil synth`` writes them,
-into a temporary directory, then reads each bag whole with :func:`uw_sil.bags.read_samples` (what ``uw-sil fit``,
-``diagnose`` and ``enhance`` read with: messages deserialized, images decoded, stamps paired) ``--repeats`` times,
-alternating between the bags; the median of the repeats per bag. The bags are in the page cache after the first
+frames as ``sensor_msgs/CompressedImage`` JPEG q95) with a camera_info, a pose and a TF message per frame
+(:func:`uw_sil.bags.write_trial`) into a temporary directory, then reads each bag whole with
+:func:`uw_sil.bags.read_samples` (what ``uw-sil fit``, ``diagnose`` and ``enhance`` read with: messages
+deserialized, images decoded, stamps paired) ``--repeats`` times, alternating between the bags; the median of the
+repeats per bag. The bags are in the page cache after the first
 pass: this is the reader's speed, not the disk's.
 
     .venv/bin/python bench/bench_bags.py [--frames 300] [--repeats 3] [--jpeg]
