@@ -5,8 +5,7 @@ frames as ``sensor_msgs/CompressedImage`` JPEG q95) with a camera_info, a pose a
 (:func:`uw_sil.bags.write_trial`) into a temporary directory, then reads each bag whole with
 :func:`uw_sil.bags.read_samples` (what ``uw-sil fit``, ``diagnose`` and ``enhance`` read with: messages
 deserialized, images decoded, stamps paired) ``--repeats`` times, alternating between the bags; the median of the
-repeats per bag. The bags are in the page cache after the first
-pass: this is the reader's speed, not the disk's.
+repeats per bag. The bags are in the page cache after the first pass: this is the reader's speed, not the disk's.
 
     .venv/bin/python bench/bench_bags.py [--frames 300] [--repeats 3] [--jpeg]
 
@@ -58,7 +57,7 @@ def main(argv=None) -> None:
                 "sqlite3": write_trial(Path(tmp) / "raw_sqlite.db3", samples(a.frames))}
         if a.jpeg:
             bags["jpeg_mcap"] = write_trial(Path(tmp) / "jpeg.mcap", samples(a.frames), image_format="jpeg")
-        for name, bag in bags.items():
+        for bag in bags.values():
             read_rate(bag)                                    # first pass: imports, page cache
         rates = {name: [] for name in bags}
         for _ in range(a.repeats):
