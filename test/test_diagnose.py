@@ -753,6 +753,34 @@ def test_backward_elimination_drops_an_effect_a_later_one_explains(bags, monkeyp
     assert any(k.startswith("vignetting.") for k in doc["final"]["params"])
 
 
+def test_every_round_tries_every_effect_not_yet_in_the_model(bags, monkeypatch):
+    """The rounds after the first try every effect the model does not hold yet (:data:`uw_sil.fit.diagnose.
+    LATER_CANDIDATES` None), not only those with the best evidence in their latest refit: an effect whose refit
+    beside the base model gains nothing can be what the next model needs (a camera response beside a seafloor, on
+    a physically lit dive, then the lamps: docs/diagnosis-log.md, 2026-12-07). Planted: the lamps accepted in
+    round 1 of a vignetting trial; round 2 must refit each of the four other effects offered (three did until
+    then)."""
+    import uw_sil.fit.judges as jd
+    from uw_sil.fit.diagnose import diagnose_bag
+
+    cls = type(jd.JUDGES["artificial_light"])
+    real = cls.accept
+
+    def planted(self, r, current, margin, residual=None):
+        if not current.effects:                    # the forward selection's first round
+            return True, 1e3, "theta"
+        return real(self, r, current, margin, residual)
+
+    monkeypatch.setattr(cls, "accept", planted)
+    monkeypatch.setattr(cls, "plausibility", lambda self, values, flat=(): [])
+    plant_first_choice(monkeypatch)
+    offered = ["artificial_light", "vignetting", "camera_response", "backscatter_coefficient", "forward_scatter"]
+    doc = diagnose_bag(bags["vignetting"], k=6, effects_allowed=offered, max_effects=2, max_iter=2).to_json()
+    rounds = [s for s in doc["selection"] if isinstance(s["round"], int)]
+    assert rounds[0]["chosen"] == "artificial_light" and sorted(rounds[0]["tried"]) == sorted(offered), rounds
+    assert sorted(rounds[1]["tried"]) == sorted(set(offered) - {"artificial_light"}), rounds
+
+
 def test_backward_elimination_also_tests_the_last_effect_and_drops_the_weakest(bags, monkeypatch):
     """Backward elimination tests every effect of the model, the last accepted included, and drops the one with
     the least evidence. Planted on a vignetting-only trial: vignetting (the truth) joins in round 1, the lamps

@@ -25,8 +25,8 @@ camera info and panel poses, and the scene model; never a ground-truth sidecar):
    held-out θ most beyond its noise margin joins the model (the margin:
    a bootstrap over held-out frames of the per-frame gains, with the normal quantile corrected for the
    number of candidates of the round, and at least :data:`uw_sil.fit.judges.base.MIN_MARGIN`); the model
-   is refitted jointly with it, and the next round tries the :data:`LATER_CANDIDATES` remaining effects with
-   the best evidence in their latest refit, until none beats its margin or ``max_effects`` are in. A refit
+   is refitted jointly with it, and the next round tries every remaining effect (:data:`LATER_CANDIDATES`),
+   until none beats its margin or ``max_effects`` are in. A refit
    never ends below the model it contains on the fit frames (:func:`uw_sil.fit.judges.base.theta_refit`), and
    it starts from both models it contains: the current one with the effect neutral, and the effect's own refit
    of the previous round with the effect accepted since at its current values (two effects that explain much
@@ -360,8 +360,16 @@ REPORT_SEED_OFFSET = 100
 #: Patience of every optimizer run of the diagnosis (base and candidates alike: a fair comparison).
 PATIENCE = 6
 #: Candidates of the rounds after the first: the remaining effects with the best held-out evidence in their
-#: latest refit, best first (the first round refits every effect).
-LATER_CANDIDATES = 3
+#: latest refit, best first; None: every remaining effect, as in the first round (since 2026-12-07; 3 before).
+#: An effect that gains nothing beside the base model can be what the next model needs: on a physically lit dive
+#: (lamps, a mild camera response, forward scatter, a seafloor) the camera response's round-1 refit stayed at its
+#: neutral values (held-out θ +0.0000), so beside the seafloor it was not among the three tried, and the lamps'
+#: fit, extrapolating their brightening to the nearest held-out frame without the response's compression, lost
+#: there; with every effect tried the camera response came in round 2 (held-out residual 27.5 -> 14.8 grey
+#: levels², θ 0.8064 -> 0.8206) and the lamps in round 3 (θ -> 0.8363). The three were also chosen on the held-out
+#: frames that then judged them, corrected for three tests. More tests widen the margins (a literature dive's forward
+#: scatter beside its port: +0.0085 held-out θ against 0.0089 with seven candidates; it was named with three).
+LATER_CANDIDATES = None
 #: Least-squares iterations of the current model's fit, the reference of the held-out residual criterion
 #: (the candidates' least-squares fits start from it with their effect neutral, and from their own starts).
 LS_BASE_NFEV = 30
@@ -826,7 +834,7 @@ def report_count(n_frames: int, k: int) -> int:
 def diagnose_frames(frames: list, fog: str = "exp2", seed: int = 0, max_effects: int = 4, max_iter: int = 30,
                     popsize: int = 12, progress: Optional[Callable[[str], None]] = None,
                     interrupt: Optional[Callable] = None, effects_allowed=None, source: str = "",
-                    later_candidates: int = LATER_CANDIDATES, processes: Optional[int] = None,
+                    later_candidates: Optional[int] = LATER_CANDIDATES, processes: Optional[int] = None,
                     report_frames: int = 0) -> Diagnosis:
     """Diagnose already loaded frames (:func:`uw_sil.fit.residuals.load_frames`); see the module docstring.
 
@@ -940,8 +948,9 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
     while True:
         while pool and len(accepted) < max_effects:
             rnd += 1
-            # later rounds: the remaining effects with the best evidence of their latest refit, whatever its sign
-            # (an effect can hide behind a stronger one until that one is modelled: β_B ≠ β_D behind strong lamps)
+            # later rounds: the remaining effects (LATER_CANDIDATES of them, None: all) with the best evidence of
+            # their latest refit, whatever its sign (an effect can hide behind a stronger one until that one is
+            # modelled: β_B ≠ β_D behind strong lamps)
             cands = pool if rnd == 1 else sorted(pool, key=lambda e: -latest.get(e, -np.inf))[:later_candidates]
             if not cands:
                 break
