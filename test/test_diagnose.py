@@ -721,13 +721,10 @@ def plant_first_choice(monkeypatch):
                         (True, True, np.inf) if strength >= 1e3 else real(plausible, strength, r, current))
 
 
-def test_backward_elimination_drops_an_effect_a_later_one_explains(bags, monkeypatch):
-    """Plant a spurious first acceptance (the lamps taken in round 1 on a vignetting-only trial, whatever their
-    evidence): vignetting joins in round 2, and backward elimination must drop the lamps (the model without
-    them, refitted, is as good on the held-out frames): the final model and the verdict are vignetting alone.
-    Without the elimination the lamps would stay in the verdict."""
+def plant_lamps_in_round_1(monkeypatch):
+    """The lamps accepted in the forward selection's first round whatever their evidence, and its first choice
+    (even if their fit is stretched); their own rule after it."""
     import uw_sil.fit.judges as jd
-    from uw_sil.fit.diagnose import diagnose_bag
 
     cls = type(jd.JUDGES["artificial_light"])
     real = cls.accept
@@ -738,8 +735,18 @@ def test_backward_elimination_drops_an_effect_a_later_one_explains(bags, monkeyp
         return real(self, r, current, margin, residual)
 
     monkeypatch.setattr(cls, "accept", planted)
-    monkeypatch.setattr(cls, "plausibility", lambda self, values, flat=(): [])   # (chosen first even if its fit is stretched)
+    monkeypatch.setattr(cls, "plausibility", lambda self, values, flat=(): [])
     plant_first_choice(monkeypatch)
+
+
+def test_backward_elimination_drops_an_effect_a_later_one_explains(bags, monkeypatch):
+    """Plant a spurious first acceptance (the lamps taken in round 1 on a vignetting-only trial, whatever their
+    evidence): vignetting joins in round 2, and backward elimination must drop the lamps (the model without
+    them, refitted, is as good on the held-out frames): the final model and the verdict are vignetting alone.
+    Without the elimination the lamps would stay in the verdict."""
+    from uw_sil.fit.diagnose import diagnose_bag
+
+    plant_lamps_in_round_1(monkeypatch)
     doc = diagnose_bag(bags["vignetting"], k=6, effects_allowed=["artificial_light", "vignetting"]).to_json()
     chosen = [s["chosen"] for s in doc["selection"]]
     assert chosen[:2] == ["artificial_light", "vignetting"], doc["selection"]
@@ -760,20 +767,9 @@ def test_every_round_tries_every_effect_not_yet_in_the_model(bags, monkeypatch):
     a physically lit dive, then the lamps: docs/diagnosis-log.md, 2026-12-07). Planted: the lamps accepted in
     round 1 of a vignetting trial; round 2 must refit each of the four other effects offered (three did until
     then)."""
-    import uw_sil.fit.judges as jd
     from uw_sil.fit.diagnose import diagnose_bag
 
-    cls = type(jd.JUDGES["artificial_light"])
-    real = cls.accept
-
-    def planted(self, r, current, margin, residual=None):
-        if not current.effects:                    # the forward selection's first round
-            return True, 1e3, "theta"
-        return real(self, r, current, margin, residual)
-
-    monkeypatch.setattr(cls, "accept", planted)
-    monkeypatch.setattr(cls, "plausibility", lambda self, values, flat=(): [])
-    plant_first_choice(monkeypatch)
+    plant_lamps_in_round_1(monkeypatch)
     offered = ["artificial_light", "vignetting", "camera_response", "backscatter_coefficient", "forward_scatter"]
     doc = diagnose_bag(bags["vignetting"], k=6, effects_allowed=offered, max_effects=2, max_iter=2).to_json()
     rounds = [s for s in doc["selection"] if isinstance(s["round"], int)]
