@@ -2,6 +2,7 @@
 effect each (160x120, 6 frames) must be named; an effect-free control must give no verdict; the JSON
 follows its schema; the command's exit codes."""
 import json
+import math
 
 import numpy as np
 import pytest
@@ -1189,6 +1190,21 @@ def test_lamps_too_close_to_the_camera_are_held_at_the_nearest_possible_distance
     held = lamps.with_pinned({"offset_x": 0.24, "offset_y": -0.18})
     assert "offset_x" not in held.free_params() and held.fixed["offset_y"] == -0.18
     assert "offset_x" in lamps.free_params() and "offset_x" not in lamps.fixed        # the registry's untouched
+
+
+def test_a_vignetting_centred_far_from_the_principal_point_is_doubted_and_held_at_the_nearest_possible_centre():
+    from uw_sil.fit.diagnose import out_of_range
+    from uw_sil.fit.judges import JUDGES
+    from uw_sil.fit.judges.vignetting import MAX_CENTRE
+
+    vig = JUDGES["vignetting"]
+    assert vig.ranges({"k1": -0.3, "cx": 0.06, "cy": -0.07}) == [] and vig.pinned({"cx": 0.06, "cy": -0.07}) == {}
+    far = {"k1": -0.23, "cx": -0.18, "cy": 0.135}            # 0.225 half-diagonals off
+    assert out_of_range(vig.plausibility(far)) and "0.23 half-diagonals" in vig.ranges(far)[0]
+    held = vig.pinned(far)
+    assert math.hypot(held["cx"], held["cy"]) == pytest.approx(MAX_CENTRE)
+    assert held["cx"] / held["cy"] == pytest.approx(-0.18 / 0.135)                       # the same direction
+    assert vig.ranges({**far, **held}) == [] and vig.pinned({**far, **held}) == {}       # and no longer doubted
 
 
 def test_a_fit_outside_physical_range_is_refitted_with_its_values_held_at_the_nearest_possible_ones(bags,

@@ -8,6 +8,15 @@ import numpy as np
 
 from .base import Judge
 
+#: Furthest a lens's vignetting centre plausibly sits from the principal point, in image half-diagonals (40 px at
+#: 640x480). The falloff is centred on the optical axis (the lens's stops and the port's aperture sit on it); the
+#: axis meets the sensor at the principal point, off it by lens decentring (a few px) and, where the camera info
+#: is nominal rather than calibrated, by the sensor's placement (±0.1-0.2 mm, about 0.05 half-diagonals): twice
+#: that. The box (:mod:`uw_sil.sim.effects.vignetting`: ±0.2) lets a fit go further; a fit centred further off is
+#: shaping something else too (the physical dives 403 and 409, whose vignetting, if any, is centred: round 2's cheap
+#: refits put it 0.16 and 0.23 off, beside the lamps).
+MAX_CENTRE = 0.1
+
 
 class VignettingJudge(Judge):
     effect = "vignetting"
@@ -39,6 +48,25 @@ class VignettingJudge(Judge):
         return {"k1": float(np.clip(K[0], -1.2, 0.5)), "k2": float(np.clip(K[1], -0.6, 0.6)), "n": n,
                 "cx": float(np.clip(p.get("cx", 0) * cam.fx / half_diag, -0.2, 0.2)),
                 "cy": float(np.clip(p.get("cy", 0) * cam.fy / half_diag, -0.2, 0.2))}
+
+    @staticmethod
+    def _off(e) -> float:
+        """How far the centre sits beyond :data:`MAX_CENTRE` (0: within; a centre held on it is within)."""
+        d = math.hypot(e.get("cx", 0.0), e.get("cy", 0.0))
+        return d if d > MAX_CENTRE * (1 + 1e-6) else 0.0
+
+    def ranges(self, e):
+        d = self._off(e)
+        if not d:
+            return []
+        return [f"vignetting centred {d:.2f} half-diagonals from the principal point: a lens's falloff is centred "
+                f"on its optical axis, within {MAX_CENTRE:g} of it (so far off, it shapes a falloff of the light)"]
+
+    def pinned(self, e):
+        """A centre fitted further from the principal point than a lens's optical axis sits: held at the
+        nearest possible distance (:data:`MAX_CENTRE`) in the same direction, the falloff's shape refitted."""
+        d = self._off(e)
+        return {"cx": e["cx"] * MAX_CENTRE / d, "cy": e["cy"] * MAX_CENTRE / d} if d else {}
 
     def neutral(self, values, camera=None):
         """Also values whose falloff is 1 over the whole image of ``camera``: the polynomial is capped at 1, so
