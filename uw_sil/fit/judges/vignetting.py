@@ -51,7 +51,8 @@ class VignettingJudge(Judge):
 
     @staticmethod
     def _off(e) -> float:
-        """How far the centre sits beyond :data:`MAX_CENTRE` (0: within; a centre held on it is within)."""
+        """The centre's distance from the principal point where it is beyond :data:`MAX_CENTRE`, else 0 (a centre
+        held on the limit, :meth:`pinned`, is within)."""
         d = math.hypot(e.get("cx", 0.0), e.get("cy", 0.0))
         return d if d > MAX_CENTRE * (1 + 1e-6) else 0.0
 
@@ -60,7 +61,8 @@ class VignettingJudge(Judge):
         if not d:
             return []
         return [f"vignetting centred {d:.2f} half-diagonals from the principal point: a lens's falloff is centred "
-                f"on its optical axis, within {MAX_CENTRE:g} of it (so far off, it shapes a falloff of the light)"]
+                f"on its optical axis, within {MAX_CENTRE:g} of it (so far off, it stands in for another falloff of the "
+                f"light, such as the lamps' footprint)"]
 
     def pinned(self, e):
         """A centre fitted further from the principal point than a lens's optical axis sits: held at the
