@@ -61,8 +61,8 @@ class VignettingJudge(Judge):
         if not d:
             return []
         return [f"vignetting centred {d:.2f} half-diagonals from the principal point: a lens's falloff is centred "
-                f"on its optical axis, within {MAX_CENTRE:g} of it (so far off, it stands in for another falloff of the "
-                f"light, such as the lamps' footprint)"]
+                f"on its optical axis, within {MAX_CENTRE:g} of it (so far off, it stands in for another falloff of "
+                f"the light, such as the lamps' footprint)"]
 
     def pinned(self, e):
         """A centre fitted further from the principal point than a lens's optical axis sits: held at the
