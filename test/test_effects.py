@@ -931,6 +931,29 @@ def test_unmodeled_geometry_adds_a_floor_below(frames, renderer):
         model.degrade(rr, cam)
 
 
+def test_a_seafloor_that_changes_only_its_colour_reuses_its_shape_and_texture_samples(frames, renderer, monkeypatch):
+    """A forward-difference batch of a seafloor model (a least-squares Jacobian): the albedo's and the contrast's
+    columns reuse the floor the unchanged height and tilt made (no new intersection or texture sampling), and
+    every candidate equals itself evaluated alone by a fresh evaluator of a fresh view, bit for bit."""
+    from uw_sil.sim.effects.unmodeled_geometry import UnmodeledGeometry
+
+    T, rr = frames["far"]
+    model = UnderwaterModel(P, {"unmodeled_geometry": {"floor_y": -0.9, "tilt": 0.05, "albedo": 0.8,
+                                                       "contrast": 0.7}})
+    x = np.concatenate([P.as_vector(), model.effect_vector()])
+    X = np.concatenate([x[None], x[None] + np.diag(2e-3 * np.maximum(1.0, np.abs(x)))])
+    made = []
+    real = UnmodeledGeometry._floor
+    monkeypatch.setattr(UnmodeledGeometry, "_floor", staticmethod(lambda *a: made.append(a[1:3]) or real(*a)))
+    batch = model.prepare(rr, renderer.camera, pose=T)(X[:, :7], X[:, 7:])
+    assert made == [(X[k, 7], X[k, 8]) for k in (0, 8, 9)]     # the centre, the height's column, the tilt's
+    monkeypatch.setattr(UnmodeledGeometry, "_floor", staticmethod(real))
+    for k in range(len(X)):
+        alone = model.prepare(renderer.render(T), renderer.camera, pose=T)(X[k, :7], X[k, 7:])
+        assert np.array_equal(batch[k], alone), k
+    assert len({batch[k].tobytes() for k in (0, 10, 11)}) == 3                # albedo and contrast change it
+
+
 def test_the_seafloor_texture_pyramid_is_built_once_when_threads_ask_for_it_together(monkeypatch):
     """The first seafloor simulations of a process can run on several threads (θ of a candidate batch). Each
     thread that found the mip pyramid unbuilt appended its own levels to the module's list: 14 levels instead

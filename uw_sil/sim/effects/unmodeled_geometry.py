@@ -16,6 +16,7 @@ from __future__ import annotations
 import functools
 import math
 import threading
+import weakref
 
 import cv2
 import numpy as np
@@ -26,8 +27,11 @@ TILE = 2.0          # m per texture repetition
 TEX_SIZE = 512
 SHADE_AMBIENT = 0.3
 Z_FAR = 100.0
+FLOOR_ENTRIES = 4   # floors kept per view (:meth:`UnmodeledGeometry.add_floor`)
 _mips: tuple = ()
 _mips_lock = threading.Lock()
+_FLOORS: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+_floors_lock = threading.Lock()
 
 
 def _texture_mips() -> tuple:
@@ -102,25 +106,58 @@ class UnmodeledGeometry(Effect):
         when that view is first read."""
         if geom.pose is None:
             raise ValueError("unmodeled_geometry needs the camera pose T_cam_panel (pass pose=...)")
+        # the floor's pixels, shape and texture samples per view and (height, tilt), kept for the view: the candidates
+        # that change only its colour (a least-squares Jacobian's albedo and contrast columns) reuse them
+        key = (float(values["floor_y"]), float(values["tilt"]), colour)
+        with _floors_lock:
+            memo = _FLOORS.setdefault(geom, {})
+            floor = memo.get(key, memo)
+        if floor is memo:
+            floor = self._floor(geom, values["floor_y"], values["tilt"], colour)
+            with _floors_lock:
+                if len(memo) >= FLOOR_ENTRIES:
+                    del memo[next(iter(memo))]
+                memo[key] = floor
+        if floor is None:
+            return geom
+        on, depth, rng_arr, labels, part, X, normals, samples, shade = floor
+        rgb = geom.rgb
+        if colour:
+            col = samples
+            if values["contrast"] != 1:
+                mean = _texture_mean()
+                col = mean + np.float32(values["contrast"]) * (col - mean)
+            col = np.clip(col * np.float32(values["albedo"]), 0, 1) * np.float32(shade)
+            rgb = geom.rgb.copy()
+            rgb.reshape(-1, 3)[on] = col
+        # the finer view of a reduced frame (the lamps' shadows) gets the floor too, when it is read
+        fine = geom.finer_view_through(functools.partial(self.add_floor, values=dict(values), colour=False))
+        return geom.replace(rgb=rgb, depth=depth, range_m=rng_arr, labels=labels, part_ids=part, X=X,
+                            normals=normals, fine=fine)
+
+    @staticmethod
+    def _floor(geom, floor_y, tilt, colour: bool):
+        """The floor at height ``floor_y`` and ``tilt`` in ``geom``'s view: its flat pixel indices, the view's depth,
+        range, labels, part ids, points and normals with it (``colour``; else None for the last two) and the texture
+        samples (M, 3) with the shading (``colour``), or None where the camera does not see it."""
         T = geom.pose
         R, t = T[:3, :3], T[:3, 3]
-        tilt = values["tilt"]
         n_p = np.array([0.0, math.cos(tilt), math.sin(tilt)])
         e1 = np.array([1.0, 0.0, 0.0])
         e2 = np.array([0.0, -math.sin(tilt), math.cos(tilt)])
-        p0 = np.array([0.0, values["floor_y"], 0.0])
+        p0 = np.array([0.0, floor_y, 0.0])
         n_c = R @ n_p
         p0_c = R @ p0 + t
         num = float(n_c @ p0_c)                # < 0: the camera is above the floor
         if num >= 0:
-            return geom
+            return None
         xt, yt = geom.xt, geom.yt
         den = np.float32(n_c[0]) * xt + np.float32(n_c[1]) * yt + np.float32(n_c[2])
         with np.errstate(divide="ignore", invalid="ignore"):
             z = np.where(den < 0, np.float32(num) / den, np.float32(np.inf)).astype(np.float32)
         sel = (z > 0) & (z < Z_FAR) & (~geom.hit | (z < geom.depth))
         if not sel.any():
-            return geom
+            return None
         # (flat indices of the floor's pixels: a gather or a scatter by them is 2-4x faster than by the mask)
         on = np.flatnonzero(sel)
         h, w = geom.shape
@@ -128,7 +165,7 @@ class UnmodeledGeometry(Effect):
         xs = xt[0, on % w] * zs
         ys = yt[on // w, 0] * zs
         rng_m = np.sqrt(xs * xs + ys * ys + zs * zs)
-        rgb = geom.rgb
+        col = shade = None
         if colour:
             # in-plane coordinates of the floor points: P = R^T (X - t), u = P.e1, v = P.e2 (per component:
             # (M, 3) @ (3, 3) products with mixed dtypes are slow in numpy)
@@ -161,13 +198,6 @@ class UnmodeledGeometry(Effect):
                 my = tv[m] * S + np.float32(0.5)
                 col[m] = _sample(img, mx, my)
             shade = SHADE_AMBIENT + (1 - SHADE_AMBIENT) * max(0.0, -float(n_c[2]))
-            if values["contrast"] != 1:
-                mean = _texture_mean()
-                col = mean + np.float32(values["contrast"]) * (col - mean)
-            col = np.clip(col * np.float32(values["albedo"]), 0, 1) * np.float32(shade)
-
-            rgb = geom.rgb.copy()
-            rgb.reshape(-1, 3)[on] = col
         depth = geom.depth.copy()
         depth.ravel()[on] = zs
         rng_arr = geom.range.copy()
@@ -184,7 +214,4 @@ class UnmodeledGeometry(Effect):
                 Xf[on, k] = v
             normals = geom.normals.copy()
             normals.reshape(-1, 3)[on] = n_c.astype(np.float32)
-        # the finer view of a reduced frame (the lamps' shadows) gets the floor too, when it is read
-        fine = geom.finer_view_through(functools.partial(self.add_floor, values=dict(values), colour=False))
-        return geom.replace(rgb=rgb, depth=depth, range_m=rng_arr, labels=labels, part_ids=part, X=X,
-                            normals=normals, fine=fine)
+        return on, depth, rng_arr, labels, part, X, normals, col, shade
