@@ -65,6 +65,41 @@ def test_reduced_lamp_shading_is_the_block_mean_of_the_full_resolution_one(near_
     assert e_new < 0.7 * e_coarse, (e_new, e_coarse)
 
 
+def test_the_frames_of_a_fit_share_the_lamps_veil_integral(near_frame, monkeypatch):
+    """The lamps' veil integral depends on the camera only: the frames of one model (one camera) make it once per
+    lamp rig and attenuation, a forward-difference batch's too, and each frame's images are those of a model of that
+    frame alone, bit for bit."""
+    from dataclasses import replace
+
+    from uw_sil.sim.effects.artificial_light import ArtificialLight
+    from uw_sil.sim.render import Renderer
+    from uw_sil.sim.scene import facing_pose
+
+    lamps = {"artificial_light": {"offset_x": 0.35, "offset_y": -0.15, "half_angle": 0.8, "fill": 0.3, "power": 0.4,
+                                  "veil": 0.2}}
+    T = facing_pose(2.0, yaw=-0.1)
+    with Renderer(camera=near_frame.camera) as r:
+        other = replace(near_frame, index=1, pose=T, render=r.render(T))
+    frames = [reduce_frame(f, 4) for f in (near_frame, other)]
+    made = []
+    real = ArtificialLight._veil_atlas
+    monkeypatch.setattr(ArtificialLight, "_veil_atlas",
+                        lambda self, st, rig, a: made.append(1) or real(self, st, rig, a))
+    model = EffectModel(frames, ("artificial_light",), values=lamps)
+    x = model.x0([0.3, 0.1, 0.08, 0.06, 0.3, 0.4, 0.05])
+    names = model.names
+    X = np.stack([x, x, x])
+    X[1, names.index("artificial_light.offset_x")] += 0.01      # moves the lamps: another veil
+    X[2, names.index("artificial_light.power")] += 0.01         # scales the light: the same veil
+    sims = [model.simulate(k, X) for k in range(2)]
+    assert len(made) == 2
+    for k in range(2):
+        alone = EffectModel([frames[k]], ("artificial_light",), values=lamps)
+        assert np.array_equal(sims[k], alone.simulate(0, X)), k
+    assert len(made) == 2 + 2 * 2
+    assert not np.array_equal(sims[0][0], sims[0][1])
+
+
 def test_a_pose_correction_below_a_quarter_pixel_is_not_named():
     """Warping the geometry by a fraction of a pixel blurs it (bilinear resampling): on a blurred recording
     such a "correction" lowers the residual without any pose error, so it must move the image measurably."""

@@ -360,13 +360,14 @@ class EffectModel:
         from ..sim.model import Geometry
 
         pms = []
+        shared = {}                 # the frames' evaluators share what depends on the camera only (the lamps' veil)
         for k, rf in enumerate(self.rframes):
             geom = Geometry(rf.camera, rf.rgb, np.where(rf.cover > 0, rf.depth, np.inf),
                             np.where(rf.cover > 0, rf.range, np.inf), rf.labels, rf.part_ids,
                             pose=rf.frame.pose, normals=rf.normals, fine=rf.fine_geometry())
             # area-exact silhouettes at the reduced resolution, as the base model has them
             pms.append(self._model.prepare(geom, rf.camera, pose=rf.frame.pose, seed=1000 + k + 7919 * self._seed,
-                                           cover=rf.cover))
+                                           cover=rf.cover, shared=shared))
         return pms
 
     def _thread_pms(self) -> list:

@@ -366,9 +366,10 @@ class UnderwaterModel:
 
     # ------------------------------------------------------------------ evaluation
 
-    def prepare(self, render, camera, pose=None, seed: int = 0, cover=None) -> "PreparedModel":
+    def prepare(self, render, camera, pose=None, seed: int = 0, cover=None,
+                shared: Optional[dict] = None) -> "PreparedModel":
         """Batched evaluator for fitting (see :class:`PreparedModel`)."""
-        return PreparedModel(self, render, camera, pose=pose, seed=seed, cover=cover)
+        return PreparedModel(self, render, camera, pose=pose, seed=seed, cover=cover, shared=shared)
 
     def degrade(self, render, camera, rng: Optional[np.random.Generator] = None, pose=None) -> np.ndarray:
         """Underwater image (H, W, 3) float32 in [0, 1] of a clean render.
@@ -505,9 +506,14 @@ class PreparedModel:
     surfaces where they are (no geometry effect, or only ones that ``keeps_scene``; with a pose error the
     silhouettes move, and the coverage applies to no parameter value, so the objective stays continuous at
     the identity). Default: the hit mask.
+
+    ``shared`` (a dict, optional): what the effects' states share (:meth:`uw_sil.sim.effects.base.Effect.share`), the
+    same dict for the evaluators of several renders of one camera (the frames of a fit): the lamps' veil integral,
+    which depends on the camera only, is then made once for all of them.
     """
 
-    def __init__(self, model: UnderwaterModel, render, camera, pose=None, seed: int = 0, cover=None):
+    def __init__(self, model: UnderwaterModel, render, camera, pose=None, seed: int = 0, cover=None,
+                 shared: Optional[dict] = None):
         self.model = model
         self.fog = model.fog
         self.seed = int(seed)
@@ -536,7 +542,8 @@ class PreparedModel:
         self._base_prep = None
         self._cache = {}
         self._shapes = {}                # shape key -> a prepared geometry of that shape (in _cache)
-        self._shared = {}                # effect name -> what its states share across geometries (Effect.share)
+        # effect name -> what its states share across geometries (Effect.share)
+        self._shared = {} if shared is None else shared
         # the first random sensor effect (camera noise): the image before it is kept between calls
         self._cut = next((k for k, e in enumerate(self.effects) if e.stage == "sensor" and e.random_per_frame), None)
         self._before_cut = None

@@ -97,6 +97,9 @@ SHADOW_THICK = 0.3         # m, the deepest an occluder is assumed to be
 SHADOW_GRID = 0.05         # m, lamp positions rounded for the shadow test (its cache key): a lamp's own size
 SHADOW_CHUNK = 1 << 17     # points x samples per array of the shadow test (2-3 MB per float32 temporary)
 LAMP_ENTRIES = 8           # lamp positions and axes whose terms are kept: a Jacobian's column moves at most 4 lamps
+# veil integrals kept per camera: a Jacobian's (up to 15 that move the lamps or the attenuation), found again by
+# the fit's next frame, which the Jacobian reaches after all of them on the one before
+VEIL_ENTRIES = 32
 HG_G = 0.9                 # Henyey-Greenstein asymmetry of the veil
 S_MIN, S_MAX, N_S = 0.02, 12.0, 32
 GRID_W = 48
@@ -627,12 +630,14 @@ class ArtificialLight(Effect):
 
     def share(self, st, shared: dict) -> None:
         # the veil's integral along the viewing directions does not depend on the surfaces, only on the camera:
-        # kept for every geometry of a prepared model (a seafloor's height moved in a Jacobian's column)
+        # kept for every geometry of a prepared model (a seafloor's height moved in a Jacobian's column) and for the
+        # other frames of a fit that share the prepared models' dict (:class:`uw_sil.sim.model.PreparedModel`)
         st["camera"] = shared.setdefault(st["camera_key"], st["camera"])
 
     def _veil_unit(self, st, rig: LampRig, a) -> np.ndarray:
         """(3, H, W) the veil of unit strength."""
-        atlas = self._cached(st["camera"], "_Va", (rig.key, *map(float, a)), lambda: self._veil_atlas(st, rig, a))
+        atlas = self._cached(st["camera"], "_Va", (rig.key, *map(float, a)), lambda: self._veil_atlas(st, rig, a),
+                             entries=VEIL_ENTRIES)
         lo = cv2.remap(atlas, st["mapx_lo"], st["mapy"], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         hi = cv2.remap(atlas, st["mapx_hi"], st["mapy"], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         V = lo + st["frac"] * (hi - lo)
