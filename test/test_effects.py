@@ -628,35 +628,6 @@ def test_the_image_before_the_camera_noise_is_reused_bit_for_bit(frames, rendere
     assert not np.array_equal(batch[0], batch[-1])
 
 
-def test_the_candidates_of_a_call_that_differ_only_in_the_sensor_share_the_image_before_it(frames, renderer):
-    """A forward-difference batch (a least-squares Jacobian) of a model with lamps, vignetting, a camera response
-    and compression: the columns of the sensor-stage parameters share one image before the sensor, the others
-    make their own, and every candidate equals itself evaluated alone by a fresh evaluator, bit for bit."""
-    T, rr = frames["mid"]
-    m = UnderwaterModel(P, {"artificial_light": "strong", "vignetting": "strong", "camera_response": "strong",
-                            "compression": "strong"})
-    x = np.concatenate([P.as_vector(), m.effect_vector()])
-    lo, hi = np.concatenate([np.zeros(7), m.effect_bounds()[0]]), np.concatenate([np.ones(7), m.effect_bounds()[1]])
-    h = 2e-3 * np.maximum(1.0, np.abs(x))
-    h = np.where(x + h > hi, -h, h)
-    X = x[None] + np.diag(h)
-    assert (X >= lo).all()
-    pm = m.prepare(rr, renderer.camera, pose=T, seed=3)
-    computed = []
-    real = pm._terms
-    pm._terms = lambda *a, **k: computed.append(1) or real(*a, **k)
-    batch = pm(X[:, :7], X[:, 7:])
-    names = m.effect_param_names()
-    first = min(i for i, n in enumerate(names) if n.startswith(("vignetting.", "camera_response.")))
-    assert first == pm._sensor_start and len(names) - first == 5 + 6 + 2
-    assert len(computed) == 7 + first + 1          # each earlier column its own image, the sensor's columns one
-    for k in range(len(X)):
-        alone = m.prepare(rr, renderer.camera, pose=T, seed=3)(X[k, :7], X[k, 7:])
-        assert np.array_equal(batch[k], alone), names[k - 7] if k >= 7 else k
-    # the shared image is copied, not changed by a column: the vignetting's and the response's columns differ
-    assert len({batch[k].tobytes() for k in range(7 + first, 7 + first + 11)}) == 11
-
-
 def _hf_energy(img, mask):
     import cv2
     lap = cv2.Laplacian(img.mean(-1).astype(np.float32), cv2.CV_32F)

@@ -37,7 +37,6 @@ from __future__ import annotations
 
 import functools
 import weakref
-from collections import Counter
 from typing import NamedTuple, Optional
 
 import numpy as np
@@ -547,11 +546,6 @@ class PreparedModel:
         # the first random sensor effect (camera noise): the image before it is kept between calls
         self._cut = next((k for k, e in enumerate(self.effects) if e.stage == "sensor" and e.random_per_frame), None)
         self._before_cut = None
-        # where the sensor-stage parameters start in an effect vector (the sensor stage comes last): the candidates
-        # of one call that differ only from there on (a least-squares Jacobian's columns of the vignetting, the
-        # camera response, the noise) share the image before the sensor (:meth:`__call__`)
-        first = next((k for k, e in enumerate(self.effects) if e.stage == "sensor"), None)
-        self._sensor_start = None if first is None else self.slices[first].start
         self._scratch = None
         self.base_vector = model.params.as_vector()
         self.effect_vector = model.effect_vector()
@@ -638,9 +632,7 @@ class PreparedModel:
                 e.apply(terms, v, rng_for(e))
         return terms, vals, prep
 
-    def _evaluate(self, base, effect_vector, seed, shared: Optional[dict] = None) -> np.ndarray:
-        """One candidate's image. ``shared``: what the candidates of a call with the same values up to the sensor
-        stage share, the image before it (empty: made here and kept in it)."""
+    def _evaluate(self, base, effect_vector, seed) -> np.ndarray:
         cut = self._cut
         if cut is not None:
             # everything before the first random sensor effect (the camera noise) is the same for candidates
@@ -652,23 +644,6 @@ class PreparedModel:
                 terms.I = I0.copy()
                 vals = [e.from_vector(effect_vector[s]) for e, s in zip(self.effects, self.slices)]
                 return self._sensor(terms, vals, seed, range(cut, len(self.effects)))
-        if shared:
-            # (the sensor-stage effects change terms.I only)
-            terms = shared["terms"]
-            terms.I = shared["I"].copy()
-            vals = [e.from_vector(effect_vector[s]) for e, s in zip(self.effects, self.slices)]
-        else:
-            terms, vals = self._before_sensor(base, effect_vector, seed)
-            if shared is not None:
-                shared["terms"], shared["I"] = terms, terms.I.copy()
-        if cut is None:
-            return self._sensor(terms, vals, seed, range(len(self.effects)))
-        self._sensor(terms, vals, seed, range(cut), last=False)
-        self._before_cut = (key, terms, terms.I.copy())
-        return self._sensor(terms, vals, seed, range(cut, len(self.effects)))
-
-    def _before_sensor(self, base, effect_vector, seed) -> tuple:
-        """(terms with the image before the sensor stage in ``terms.I``, the effects' value dicts)."""
         terms, vals, prep = self._terms(base, effect_vector, seed)
         b = terms.b
         ip = prep.planes if terms.illum is None else prep.planes * terms.illum
@@ -690,7 +665,11 @@ class PreparedModel:
         if terms.veil is not None:
             I += terms.veil
         terms.I = I
-        return terms, vals
+        if cut is None:
+            return self._sensor(terms, vals, seed, range(len(self.effects)))
+        self._sensor(terms, vals, seed, range(cut), last=False)
+        self._before_cut = (key, terms, terms.I.copy())
+        return self._sensor(terms, vals, seed, range(cut, len(self.effects)))
 
     def _sensor(self, terms, vals, seed, which, last: bool = True) -> np.ndarray:
         """The sensor-stage effects among ``which`` (effect indices) on ``terms.I``; ``last``: then the clip to
@@ -726,13 +705,8 @@ class PreparedModel:
             out = np.empty((n, h, w, 3), np.float32)
         elif single and out.ndim == 3:
             out = out[None]
-        keys = shared = None
-        if n > 1 and self._sensor_start is not None:
-            keys = [base[k].tobytes() + ev[k, :self._sensor_start].tobytes() for k in range(n)]
-            seen = Counter(keys)
-            shared = {key: {} for key, m in seen.items() if m > 1}
         for k in range(n):
-            I = self._evaluate(base[k], ev[k], seed, None if keys is None else shared.get(keys[k]))
+            I = self._evaluate(base[k], ev[k], seed)
             for c in range(3):
                 out[k, :, :, c] = I[c]
         return out[0] if single else out
