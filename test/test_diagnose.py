@@ -136,6 +136,45 @@ def test_an_effect_a_hair_from_neutral_is_the_model_without_it(tmp_path):
     assert FAINT_DN == 0.5
 
 
+def test_a_parameter_the_image_does_not_depend_on_is_no_finding(tmp_path):
+    """β_B/β_D shapes only the ambient backscatter b_c (1 - e^(-β_B r)): where the fit leaves no ambient backscatter
+    (b_c = 0, a scene lit by the lamps alone), the ratios change no pixel over their whole box and the verdict says
+    they are not determined, however far outside the measured range their values are, while the range decay of β_D
+    still acts; with a veil they are determined. A vignetting's centre is undetermined only without a falloff. Such
+    a doubt says how well the values are known: not implausible, counted once with the bounds."""
+    from diagjobs import base_model_job
+    from uw_sil.fit.diagfit import EffectModel, image_change
+    from uw_sil.fit.diagnose import _confidence, out_of_range
+    from uw_sil.fit.judges import JUDGES
+    from uw_sil.fit.judges.base import NOT_DETERMINED
+
+    _, job, cur = base_model_job(tmp_path, {}, 4, size=(160, 120))
+    bc, vig = JUDGES["backscatter_coefficient"], JUDGES["vignetting"]
+    model = EffectModel(cur.model.rframes, ("backscatter_coefficient", "vignetting"), fog="exp2", seed=0)
+    fitted = {"ratio_r": 0.3, "ratio_g": 0.5, "ratio_b": 1.0, "decay": 1.2}
+    dark, hazy = cur.base.copy(), cur.base.copy()
+    dark[3:6], hazy[3:6] = 0.0, 0.3
+    lamp_lit = model.x0(dark, {"backscatter_coefficient": fitted, "vignetting": {"k1": -0.4}})
+    assert bc.undetermined(model, lamp_lit) == ("ratio_r", "ratio_g", "ratio_b")
+    # ratios refitted, then held at the nearest plausible value (:meth:`pinned`): not in the vector, tested too
+    held = EffectModel(cur.model.rframes, ("backscatter_coefficient",), fog="exp2", seed=0,
+                       values={"backscatter_coefficient": fitted},
+                       free={"backscatter_coefficient": ("ratio_b", "decay")})
+    assert bc.undetermined(held, held.x0(dark)) == ("ratio_b",)
+    assert bc.undetermined(held, held.x0(dark), held=("ratio_r", "ratio_g")) == ("ratio_r", "ratio_g", "ratio_b")
+    assert bc.undetermined(held, held.x0(hazy), held=("ratio_r", "ratio_g")) == ()
+    assert vig.undetermined(model, lamp_lit) == ()
+    assert bc.undetermined(model, model.x0(hazy, {"backscatter_coefficient": fitted})) == ()
+    assert vig.undetermined(model, model.x0(hazy)) == ("cx", "cy")          # k1 = k2 = n = 0: no falloff to centre
+    assert image_change(model, lamp_lit, lamp_lit[None])[0] == 0.0
+
+    doubts = bc.plausibility(fitted, (), ("ratio_r", "ratio_g", "ratio_b"))
+    assert len(doubts) == 1 and NOT_DETERMINED in doubts[0] and "ratio_r, " in doubts[0], doubts
+    assert bc.plausibility(fitted) and NOT_DETERMINED not in bc.plausibility(fitted)[0]     # 0.3 out of range
+    assert out_of_range(doubts) == []
+    assert _confidence(3.0, doubts) == _confidence(3.0, ["x sits on its bound"]) < _confidence(3.0, [])
+
+
 def test_undecided_effects_beat_a_margin_and_are_not_in_the_final_model():
     """What the held-out frames showed evidence for but the final model's effects explain as well: listed with
     how it ended (fell below its margin beside a later effect, or dropped by the elimination), never an effect
@@ -736,7 +775,7 @@ def plant_lamps_in_round_1(monkeypatch):
         return real(self, r, current, margin, residual)
 
     monkeypatch.setattr(cls, "accept", planted)
-    monkeypatch.setattr(cls, "plausibility", lambda self, values, flat=(): [])
+    monkeypatch.setattr(cls, "plausibility", lambda self, values, flat=(), undetermined=(): [])
     plant_first_choice(monkeypatch)
 
 
@@ -799,7 +838,7 @@ def test_backward_elimination_also_tests_the_last_effect_and_drops_the_weakest(b
         return real(self, r, current, margin, residual)
 
     monkeypatch.setattr(cls, "accept", planted)
-    monkeypatch.setattr(cls, "plausibility", lambda self, values, flat=(): [])
+    monkeypatch.setattr(cls, "plausibility", lambda self, values, flat=(), undetermined=(): [])
     diag = diagnose_bag(bags["vignetting"], k=6, effects_allowed=["artificial_light", "vignetting"], processes=1)
     doc = diag.to_json()
     chosen = [s["chosen"] for s in doc["selection"]]
@@ -1124,8 +1163,9 @@ def test_a_plausible_explanation_is_chosen_before_a_stretched_one(bags, monkeypa
         return (True, 0.01, "theta") if not current.effects else (ok, strength, crit)
 
     monkeypatch.setattr(lamp, "accept", weak)
-    monkeypatch.setattr(lamp, "plausibility", lambda self, values, flat=(): [])       # (its weak fit may sit on a bound)
-    monkeypatch.setattr(vig, "plausibility", lambda self, values, flat=(): ["planted doubt"])
+    # (the lamps' weak fit may sit on a bound)
+    monkeypatch.setattr(lamp, "plausibility", lambda self, values, flat=(), undetermined=(): [])
+    monkeypatch.setattr(vig, "plausibility", lambda self, values, flat=(), undetermined=(): ["planted doubt"])
     said = []
     doc = diagnose_bag(bags["vignetting"], k=6, effects_allowed=["artificial_light", "vignetting"], max_effects=1,
                        progress=said.append).to_json()
@@ -1287,7 +1327,7 @@ def test_values_held_at_their_nearest_possible_ones_stay_held_in_every_later_fit
     monkeypatch.setattr(al, "ROV_DISTANCE", (1.0, 1.5))
     cr, lamps = type(jd.JUDGES["camera_response"]), type(jd.JUDGES["artificial_light"])
     monkeypatch.setattr(cr, "accept", lambda self, r, current, margin, residual=None: (True, 1000.0, "theta"))
-    monkeypatch.setattr(cr, "plausibility", lambda self, values, flat=(): [])
+    monkeypatch.setattr(cr, "plausibility", lambda self, values, flat=(), undetermined=(): [])
     real = lamps.accept
     monkeypatch.setattr(lamps, "accept", lambda self, r, current, *a, **k:
                         real(self, r, current, *a, **k) if current.effects else (False, 0.0, "theta"))
@@ -1368,7 +1408,7 @@ def test_a_residual_acceptance_is_declined_where_its_model_loses_theta(bags, mon
 
     cr = type(jd.JUDGES["camera_response"])
     real_ls = jb.least_squares_model
-    monkeypatch.setattr(cr, "plausibility", lambda self, values, flat=(): [])
+    monkeypatch.setattr(cr, "plausibility", lambda self, values, flat=(), undetermined=(): [])
     monkeypatch.setattr(cr, "accept", lambda self, r, current, margin, residual=None:
                         (True, 1000.0, "residual") if not current.effects else (False, 0.0, "theta"))
     docs = {}
@@ -1441,7 +1481,7 @@ def test_a_pose_correction_survives_the_elimination_of_an_earlier_effect(bags, m
     cr, pe = type(jd.JUDGES["camera_response"]), type(jd.JUDGES["pose_error"])
     monkeypatch.setattr(cr, "accept", lambda self, r, current, margin, residual=None:
                         (True, 1e3, "theta") if not current.effects and not current.absorbed else (False, 0.0, "theta"))
-    monkeypatch.setattr(cr, "plausibility", lambda self, values, flat=(): [])
+    monkeypatch.setattr(cr, "plausibility", lambda self, values, flat=(), undetermined=(): [])
     monkeypatch.setattr(pe, "accept", lambda self, r, current, margin, residual=None:
                         (True, 1e3, "theta") if current.effects == ("camera_response",) else (False, 0.0, "theta"))
     real_without = jb.refit_without
@@ -1480,7 +1520,7 @@ def test_an_effect_the_final_model_holds_neutral_is_not_named(bags, monkeypatch)
 
     monkeypatch.setattr(cr, "refit", neutral)
     monkeypatch.setattr(cr, "accept", lambda self, r, current, margin, residual=None: (True, 1e3, "theta"))
-    monkeypatch.setattr(cr, "plausibility", lambda self, values, flat=(): [])
+    monkeypatch.setattr(cr, "plausibility", lambda self, values, flat=(), undetermined=(): [])
     said = []
     doc = diagnose_bag(bags["control"], k=6, effects_allowed=["camera_response"], max_effects=1, processes=1,
                        progress=said.append).to_json()

@@ -356,6 +356,11 @@ class EffectModel:
         return EffectModel(rframes, self.effects, self.values, self.free, self.fog,
                            self._seed if seed is None else seed)
 
+    def with_free(self, free: dict) -> "EffectModel":
+        """The same model on the same frames with other free parameters (``free``: names per effect, over its
+        own)."""
+        return EffectModel(self.rframes, self.effects, self.values, {**self.free, **free}, self.fog, self._seed)
+
     def _prepare(self) -> list:
         from ..sim.model import Geometry
 
@@ -421,6 +426,24 @@ class EffectModel:
         for n in self.effects:
             eff[n] = {p: float(ev[self.pnames.index(f"{n}.{p}")]) for p in self.values[n]}
         return {"base": {k: float(v) for k, v in zip(RGB_NAMES, base)}, "effects": eff}
+
+
+#: Grey levels below which a change of the image is none (:func:`image_change`): half a grey level, less than an
+#: 8-bit frame can show.
+FAINT_DN = 0.5
+
+
+def image_change(model: EffectModel, x, X, batch: int = 16) -> np.ndarray:
+    """The largest change of any pixel of ``model``'s frames, in grey levels, from the vector ``x`` to each of
+    ``X`` (N, d): (N,), NaN where a simulation is not finite. ``batch`` vectors at a time, each beside ``x``."""
+    x, X = np.asarray(x, float), np.atleast_2d(np.asarray(X, float))
+    dev = np.zeros(len(X))
+    for k in range(len(model.rframes)):
+        for j in range(0, len(X), batch):
+            img = model.simulate(k, np.concatenate([x[None], X[j:j + batch]]))
+            d = np.abs(img[1:] - img[:1]).reshape(len(img) - 1, -1)
+            dev[j:j + batch] = np.maximum(dev[j:j + batch], 255.0 * d.max(axis=1))     # (NaN: a change)
+    return dev
 
 
 def residual_energy(model, X) -> np.ndarray:

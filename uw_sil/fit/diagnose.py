@@ -80,7 +80,7 @@ from typing import Callable, Optional
 import numpy as np
 
 from ..sim.params import RGB_NAMES
-from .diagfit import BASE_SIGMA0, BaseModel, EffectModel, FrameObjective, fit_model, noise_sigmas
+from .diagfit import FAINT_DN, BASE_SIGMA0, BaseModel, EffectModel, FrameObjective, fit_model, noise_sigmas
 from .residuals import (LABEL_PANEL, ReducedFrame, base_sim, locate, load_frames, reduce_frame,
                         reduction_factor, residual_maps, set_aside, split_frames)
 
@@ -390,11 +390,11 @@ def _confidence(strength: float, doubts: list) -> float:
     0.5; 3 margins and more: 0.95), lowered by 0.6 for each value outside a physical range (:func:`out_of_range`:
     a finding of its own, that the fit mimics something else) and by 0.8 once for parameters on a bound of their
     box, however many: they are one finding, a form the box cannot draw, which says how well the values are known
-    rather than that the effect is absent. Counted as 0.6 each, the literature generator's four flat-top lamps
-    (offset, toe-in and tilt on their bounds; 81 % less held-out residual at over 3 margins) ranked below a
-    vignetting of one margin, and its strong vignetting (+0.153 held-out θ at 6.4 margins, k2 on its bound: the
-    corners darker than the polynomial's box) below lamps accepted at 1.35 margins beside it (0.7-0.9 rank those
-    documents alike)."""
+    rather than that the effect is absent (so do parameters the recording does not determine, counted with them).
+    Counted as 0.6 each, the literature generator's four flat-top lamps (offset, toe-in and tilt on their bounds;
+    81 % less held-out residual at over 3 margins) ranked below a vignetting of one margin, and its strong
+    vignetting (+0.153 held-out θ at 6.4 margins, k2 on its bound: the corners darker than the polynomial's box)
+    below lamps accepted at 1.35 margins beside it (0.7-0.9 rank those documents alike)."""
     c = 0.05 + 0.9 * float(np.clip(0.5 + (strength - 1.0) / 4.0, 0.0, 1.0))
     implausible = len(out_of_range(doubts))
     bound = len(doubts) > implausible
@@ -637,11 +637,6 @@ def held_neutral(values: dict, camera=None) -> list:
     return [e for e, v in values.items() if JUDGES[e].neutral(v, camera)]
 
 
-#: Grey levels below which an effect's part of the final model's image is no part of it (:func:`held_faint`): half a
-#: grey level, less than an 8-bit frame can show.
-FAINT_DN = 0.5
-
-
 def held_faint(current, floor: float = FAINT_DN) -> list:
     """The effects of the model ``current`` (a :class:`~uw_sil.fit.judges.base.Current`) whose fitted values change
     no pixel of its fit frames by ``floor`` grey levels against the same vector with the effect's free parameters
@@ -650,6 +645,7 @@ def held_faint(current, floor: float = FAINT_DN) -> list:
     lamps accepted by the held-out residual of their least-squares fit, whose θ fit ended at fill 0.999999, a
     millionth of the light from the lamps, and were named first)."""
     from ..sim.effects import get_effect
+    from .diagfit import image_change
 
     if current.model is None or current.x is None:
         return []
@@ -663,8 +659,7 @@ def held_faint(current, floor: float = FAINT_DN) -> list:
             continue
         xn = x.copy()
         xn[idx] = [d[names[i].split(".", 1)[1]] for i in idx]
-        if all(255.0 * float(np.max(np.abs(np.subtract(*m.simulate(k, np.stack([x, xn])))))) < floor
-               for k in range(len(m.rframes))):
+        if image_change(m, x, xn)[0] < floor:
             out.append(e)
     return out
 
@@ -686,10 +681,11 @@ def out_of_range(doubts: list) -> list:
     judges.base.ON_BOUND`): the box cut a fit whose form differs from the scene's, which says how well the values
     are known, not that the effect is not there (the literature generator's flat-top lamps put the rig's toe-in
     and height on their bounds at 88 % less held-out residual and +0.034 held-out θ; ranked as implausible,
-    a camera response of +0.000 held-out θ was chosen before them)."""
-    from .judges.base import ON_BOUND
+    a camera response of +0.000 held-out θ was chosen before them), nor parameters the image does not depend on
+    (:data:`~uw_sil.fit.judges.base.NOT_DETERMINED`), which say the same."""
+    from .judges.base import NOT_DETERMINED, ON_BOUND
 
-    return [d for d in doubts if ON_BOUND not in d]
+    return [d for d in doubts if ON_BOUND not in d and NOT_DETERMINED not in d]
 
 
 def _rank(plausible: bool, strength: float, r, current) -> tuple:
@@ -1196,12 +1192,15 @@ def _diagnose(frames, fog, seed, max_effects, max_iter, popsize, progress, inter
         judge = JUDGES[e]
         vals = eff_values[e]
         flat = judge.flat_bounds(job, current.model, current.x, a["margin"]) if e in current.effects else ()
-        doubts = judge.plausibility(vals, flat)
+        pins = a.get("pinned") or {}
+        undetermined = judge.undetermined(current.model, current.x, held=tuple(pins.get("values", ())))
+        doubts = judge.plausibility(vals, flat, undetermined)
         words = gain_words(a["before"], a["after"], r.statistic if judge.kind == "statistic" else None,
                            (a["residual_before"], a["residual_after"]) if a.get("criterion") == "residual" else None)
         text = judge.explain(vals, words, sigs.get(e), camera=job.camera)
-        pins = a.get("pinned") or {}
-        if pins and all(abs(vals.get(n, np.inf) - v) < 1e-9 for n, v in pins["values"].items()):
+        # (values held where the image does not depend on them: neither the free fit nor the held value is a finding)
+        if (pins and all(abs(vals.get(n, np.inf) - v) < 1e-9 for n, v in pins["values"].items())
+                and not set(pins["values"]) <= set(undetermined)):
             text += (" — held at the nearest physically possible values ("
                      + ", ".join(f"{n} {v:.3g}" for n, v in pins["values"].items())
                      + f"): fitted freely, {pins['because']}")

@@ -41,8 +41,8 @@ from typing import Callable, Optional
 import numpy as np
 
 from ...sim.params import RGB_NAMES
-from ..diagfit import (BASE_SIGMA0, EffectModel, FrameObjective, ModelFit, fit_model, ls_fit, noise_sigmas,
-                       residual_energy)
+from ..diagfit import (BASE_SIGMA0, FAINT_DN, EffectModel, FrameObjective, ModelFit, fit_model, image_change,
+                       ls_fit, noise_sigmas, residual_energy)
 
 __all__ = ["Job", "Current", "Refit", "Judge", "theta_refit", "margin_for", "bootstrap_se", "z_multiple",
            "MIN_MARGIN", "MIN_RESIDUAL_MARGIN", "residual_gain", "residual_improvement", "current_ls"]
@@ -50,6 +50,9 @@ __all__ = ["Job", "Current", "Refit", "Judge", "theta_refit", "margin_for", "boo
 #: The words of a doubt about a refitted parameter on a bound of its box (:meth:`Judge.plausibility`); such doubts
 #: of one effect count as one in its confidence (:func:`uw_sil.fit.diagnose._confidence`).
 ON_BOUND = "sits on its bound"
+#: The words of a doubt about refitted parameters the image does not depend on (:meth:`Judge.undetermined`): like a
+#: bound, it says how well the values are known, not that the effect is absent or implausible.
+NOT_DETERMINED = "not determined by the recording"
 #: Smallest held-out θ gain accepted, whatever the bootstrap says (the spread of four frames can be tiny).
 #: Measured null: on effect-free controls (bench_concealed.py, two own and two foreign seeds, 2026-11-27) the
 #: 28 round-1 refits of the smooth effects (all but compression, particles and noise) gained at most 0.0004
@@ -414,16 +417,55 @@ class Judge:
                 out.append((p.name, +1))
         return out
 
-    def plausibility(self, values: dict, flat: tuple = ()) -> list:
+    def plausibility(self, values: dict, flat: tuple = (), undetermined: tuple = ()) -> list:
         """Doubts about fitted values: refitted parameters on a bound of their box (the fit wanted more;
-        ``flat``: parameters that have saturated there, :meth:`flat_bounds`, not doubted), and the plug-in's
-        physical ranges (:meth:`ranges`)."""
+        ``flat``: parameters that have saturated there, :meth:`flat_bounds`, not doubted), the plug-in's
+        physical ranges (:meth:`ranges`), and ``undetermined`` parameters (:meth:`undetermined`), one doubt."""
         from ...sim.effects import get_effect
 
         box = {p.name: p for p in get_effect(self.effect).params}
         out = [f"{self.effect}.{n} = {values[n]:.3g} {ON_BOUND} [{box[n].lo:g}, {box[n].hi:g}]"
-               for n, _ in self.on_bounds(values) if n not in flat]
-        return out + self.ranges(values)
+               for n, _ in self.on_bounds(values) if n not in flat and n not in undetermined]
+        # a value that is no finding is not out of any range either
+        known = {n: v for n, v in values.items() if n not in undetermined}
+        return out + self.ranges(known) + ([self.undetermined_words(undetermined)] if undetermined else [])
+
+    def undetermined(self, model: Optional[EffectModel], x, held: tuple = ()) -> tuple:
+        """The refitted parameters of this effect that the image of ``model`` at ``x`` does not depend on: set to
+        either end of its box (the rest held), no pixel of the model's frames (the fit frames) moves by
+        :data:`FAINT_DN` grey levels (:func:`image_change`), below what the camera records. Their fitted values
+        are no finding, and the verdict says so: β_B/β_D, for one, shapes only the ambient backscatter
+        b_c (1 - e^(-β_B r)), which a scene lit by the vehicle's lamps alone fits to nothing (the lamps' veil is the
+        lamp model's; the physical lamp dive 405 named β_B≠β_D with b_c below 0.001 and its ratios "held at the
+        nearest physically possible values", while what changed its image was β_D falling with range).
+        ``held``: parameters of the effect refitted and then held at a value (:meth:`pinned`), tested too."""
+        from ...sim.effects import get_effect
+
+        if model is None or x is None or self.effect not in model.effects:
+            return ()
+        x = np.asarray(x, float)
+        held = tuple(n for n in held if n not in model.free[self.effect])
+        if held:
+            values = model.params_of(x)["effects"]
+            model = model.with_free({self.effect: model.free[self.effect] + held})
+            x = model.x0(x[:7], values)
+        lo, hi = model.bounds()
+        free = [(n.split(".", 1)[1], i) for i, n in enumerate(model.names) if n.startswith(self.effect + ".")]
+        X = []
+        for _, i in free:
+            for v in (lo[i], hi[i]):
+                X.append(x.copy())
+                X[-1][i] = v
+        dev = image_change(model, x, np.array(X)).reshape(-1, 2).max(axis=1)
+        flat = {n for (n, _), d in zip(free, dev) if d < FAINT_DN}
+        return tuple(n for n in get_effect(self.effect).param_names if n in flat)
+
+    def undetermined_words(self, names: tuple) -> str:
+        """The doubt about parameters the recording does not determine (:meth:`undetermined`)."""
+        listed = ", ".join(f"{self.effect}.{n}" for n in names)
+        return (f"{listed} {NOT_DETERMINED}: over {'its' if len(names) == 1 else 'their'} whole box the image changes "
+                f"by less than {FAINT_DN:g} grey levels at the fitted values, so the value{'s' * (len(names) > 1)} "
+                f"stated {'are' if len(names) > 1 else 'is'} no finding")
 
     def flat_bounds(self, job: Job, model: Optional[EffectModel], x, scale: float) -> tuple:
         """The parameters on a bound of their box (:meth:`on_bounds`) that have *saturated* there: the effect's
