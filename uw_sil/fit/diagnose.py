@@ -80,7 +80,7 @@ from typing import Callable, Optional
 import numpy as np
 
 from ..sim.params import RGB_NAMES
-from .diagfit import FAINT_DN, BASE_SIGMA0, BaseModel, EffectModel, FrameObjective, fit_model, noise_sigmas
+from .diagfit import BASE_SIGMA0, FAINT_DN, BaseModel, EffectModel, FrameObjective, fit_model, noise_sigmas
 from .residuals import (LABEL_PANEL, ReducedFrame, base_sim, locate, load_frames, reduce_frame,
                         reduction_factor, residual_maps, set_aside, split_frames)
 
