@@ -146,7 +146,7 @@ def test_a_parameter_the_image_does_not_depend_on_is_no_finding(tmp_path):
     from uw_sil.fit.diagfit import EffectModel, image_change
     from uw_sil.fit.diagnose import _confidence, out_of_range
     from uw_sil.fit.judges import JUDGES
-    from uw_sil.fit.judges.base import NOT_DETERMINED
+    from uw_sil.fit.judges.base import NOT_DETERMINED, ON_BOUND
 
     _, job, cur = base_model_job(tmp_path, {}, 4, size=(160, 120))
     bc, vig = JUDGES["backscatter_coefficient"], JUDGES["vignetting"]
@@ -172,7 +172,7 @@ def test_a_parameter_the_image_does_not_depend_on_is_no_finding(tmp_path):
     assert len(doubts) == 1 and NOT_DETERMINED in doubts[0] and "ratio_r, " in doubts[0], doubts
     assert bc.plausibility(fitted) and NOT_DETERMINED not in bc.plausibility(fitted)[0]     # 0.3 out of range
     assert out_of_range(doubts) == []
-    assert _confidence(3.0, doubts) == _confidence(3.0, ["x sits on its bound"]) < _confidence(3.0, [])
+    assert _confidence(3.0, doubts) == _confidence(3.0, [f"x {ON_BOUND}"]) < _confidence(3.0, [])
 
 
 def test_undecided_effects_beat_a_margin_and_are_not_in_the_final_model():
