@@ -163,6 +163,9 @@ def test_a_parameter_the_image_does_not_depend_on_is_no_finding(tmp_path):
     assert bc.undetermined(held, held.x0(dark)) == ("ratio_b",)
     assert bc.undetermined(held, held.x0(dark), held=("ratio_r", "ratio_g")) == ("ratio_r", "ratio_g", "ratio_b")
     assert bc.undetermined(held, held.x0(hazy), held=("ratio_r", "ratio_g")) == ()
+    fixed = EffectModel(cur.model.rframes, ("backscatter_coefficient",), fog="exp2", seed=0,
+                        values={"backscatter_coefficient": fitted}, free={"backscatter_coefficient": ()})
+    assert bc.undetermined(fixed, fixed.x0(dark)) == ()                     # nothing refitted, nothing to say
     assert vig.undetermined(model, lamp_lit) == ()
     assert bc.undetermined(model, model.x0(hazy, {"backscatter_coefficient": fitted})) == ()
     assert vig.undetermined(model, model.x0(hazy)) == ("cx", "cy")          # k1 = k2 = n = 0: no falloff to centre

@@ -451,6 +451,8 @@ class Judge:
             x = model.x0(x[:7], values)
         lo, hi = model.bounds()
         free = [(n.split(".", 1)[1], i) for i, n in enumerate(model.names) if n.startswith(self.effect + ".")]
+        if not free:
+            return ()
         X = []
         for _, i in free:
             for v in (lo[i], hi[i]):
