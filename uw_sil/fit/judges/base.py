@@ -450,7 +450,7 @@ class Judge:
             model = model.with_free({self.effect: model.free[self.effect] + held})
             x = model.x0(x[:7], values)
         lo, hi = model.bounds()
-        free = [(n.split(".", 1)[1], i) for i, n in enumerate(model.names) if n.startswith(self.effect + ".")]
+        free = [(model.names[i].split(".", 1)[1], i) for i in model.free_index(self.effect)]
         if not free:
             return ()
         X = []
