@@ -382,8 +382,8 @@ def test_artificial_light_casts_shadows_that_move_with_the_lamp():
 def test_the_shadow_test_skips_only_points_it_would_find_lit(frames, renderer):
     """The shadow test first drops the points that no occluder can reach (a depth erosion over the lamp's parallax
     radius): with every point tested instead, the visibility is the same, on the panel near, tilted and far, for
-    lamps beside, above, below, far to the side of and at the camera, on two block scenes, on the panel above a
-    seafloor and on a block standing on a seafloor. (A radius taken from the occluder's thickness, 0.3 m, instead
+    lamps beside, above, below, far to the side of, ahead of, behind and at the camera, on two block scenes, on the
+    panel above a seafloor and on a block standing on a seafloor. (A radius taken from the occluder's thickness, 0.3 m, instead
     of the deepest sample, fails on the deeper block; one taken at the band's farthest depth instead of its
     nearest fails too.) One grid serves every lamp, as the candidates of a fit share it: the points kept for
     testing depend on the lamp only through the radii and are kept per set of radii, so lamps mirrored or moved at
@@ -410,7 +410,7 @@ def test_the_shadow_test_skips_only_points_it_would_find_lit(frames, renderer):
     for g in grids:
         # (the lamp at the camera first: its radius is the smallest, its points to test the fewest)
         for L in ((0.0, 0.0, 0.0), (0.6, -0.3, 0.0), (-0.35, 0.0, 0.0), (1.5, 0.8, 0.0), (0.0, -0.5, 0.1),
-                  (0.35, 0.0, 0.0), (0.0, 0.6, 0.0), (0.6, 0.2, 0.0)):
+                  (0.35, 0.0, 0.0), (0.0, 0.6, 0.0), (0.6, 0.2, 0.0), (0.5, -0.2, -0.4), (-0.4, 0.1, 0.4)):
             L = np.asarray(L, np.float32)
             fast = _visibility_on(g, L)
             np.testing.assert_array_equal(fast, _visibility_on(g, L, prune=False))
@@ -483,6 +483,42 @@ def test_artificial_light_tilt_aims_the_beam_below_the_optical_axis():
     half = cam.height // 2
     low, high = (V[0.3][half:].sum() / V[0.3][:half].sum()), (V[0.0][half:].sum() / V[0.0][:half].sum())
     assert low > 1.2 * high, (low, high)
+
+
+def test_artificial_light_ahead_of_or_behind_the_camera_moves_the_inverse_square_falloff():
+    """``offset_z`` puts the lamps ahead of (> 0) or behind (< 0) the camera's plane. On walls 1.2 and 4 m ahead,
+    one lamp 0.3 m beside the camera lights every pixel of the wall as the module's formula says for a lamp at
+    ``(0.3, -0.1, offset_z)`` (beam, Lambert and ``(R0 / R)^2`` worked out here from the wall's points, no water):
+    0.2 m behind the camera the near wall gets (1.2 / 1.4)^2 / (4 / 4.2)^2 = 0.81 of the light against the far wall
+    that a lamp in the camera's plane gives it, and 0.2 m ahead more. The cross's lamps move with the pair."""
+    from uw_sil.sim.effects.artificial_light import ArtificialLight, LampRig
+
+    cam = CameraModel.from_fov(320, 240, 70.0)
+    eff = ArtificialLight()
+    vals = {p.name: p.default for p in eff.params}
+    vals.update(offset_x=0.3, offset_y=-0.1, toe_in=0.1, tilt=0.05, balance=0.0, half_angle=0.6, shape=2.0,
+                power=1.0, fill=0.0)
+    a = np.zeros(3, np.float32)
+    mid = {}
+    for d in (1.2, 4.0):
+        geom, XT, YT, _ = _block_scene(cam, z_wall=d, half=0.0)
+        st = eff.prepare(geom, cam)
+        X = np.stack([XT * d, YT * d, np.full_like(XT, d)], axis=-1)
+        for oz in (0.0, -0.2, 0.2):
+            rig = LampRig({**vals, "offset_z": oz})
+            np.testing.assert_allclose(rig.pos[0], (0.3, -0.1, oz), atol=1e-7)
+            v = X - rig.pos[0]
+            R = np.linalg.norm(v, axis=-1)
+            theta = np.arccos(np.clip(v @ rig.axis[0] / R, -1, 1))
+            want = np.exp(-np.log(2) * (theta / 0.6) ** 2) * (d - oz) / R * (2.0 / R) ** 2
+            L = eff.illumination(st, rig, a)
+            np.testing.assert_allclose(L[1], want, rtol=2e-4)
+            mid[d, oz] = float(L[1][cam.height // 2, int(round(cam.cx + cam.fx * 0.3 / d))])
+    rel = {oz: (mid[1.2, oz] / mid[4.0, oz]) / (mid[1.2, 0.0] / mid[4.0, 0.0]) for oz in (-0.2, 0.2)}
+    assert rel[-0.2] == pytest.approx((1.2 / 1.4) ** 2 / (4 / 4.2) ** 2, rel=0.01)
+    assert rel[0.2] == pytest.approx((1.2 / 1.0) ** 2 / (4 / 3.8) ** 2, rel=0.01)
+    rig = LampRig({**vals, "cross": 0.5, "cross_y": 0.4, "offset_z": -0.2})
+    np.testing.assert_allclose(rig.pos[2:, 2], -0.2, atol=1e-7)
 
 
 def test_artificial_light_cross_adds_a_top_and_a_bottom_lamp_aimed_at_the_work_area():

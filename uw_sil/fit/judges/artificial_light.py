@@ -25,7 +25,11 @@ class ArtificialLightJudge(Judge):
     # power is free: how bright the lamps are against the render's light level is the recording's, not ours
     # (fixed at 1, a foreign rig normalized at 2.5 m instead of 2 m could not be fitted)
     # the lamps' colour (tint) too: a white LED is not the white light the renders assume, and a colour the lamp
-    # model cannot take is left to a per-channel gain of the camera response, named beside the lamps
+    # model cannot take is left to a per-channel gain of the camera response, named beside the lamps.
+    # offset_z (lamps ahead of or behind the camera's plane) is held at 0, the camera's plane: freed, it
+    # found the physical dives' lamps' depth offsets (408: -0.19 m, the truth's lamps -0.08 to -0.16; 405: +0.07,
+    # truth +0.01 to +0.09), but on the nine dives it lost the lamps on 401, a true vignetting on 403 and added a
+    # β_B≠β_D on 402 (named right 17 -> 16; docs/diagnosis-log.md, 2026-12-07, night II)
     free = ("offset_x", "offset_y", "toe_in", "tilt", "half_angle", "shape", "balance", "fill", "power", "veil",
             "tint_r", "tint_b", "cross", "cross_y", "cross_balance")
     res = "low"

@@ -1,17 +1,20 @@
 """Vehicle lamps: the scene is lit by lamps next to the camera, not by uniform light.
 
-The base model (and the renderer's shading) assume light that does not depend on where a surface is. At
-depth the only light is the vehicle's: lamp ``l`` at ``L_l`` in the camera frame (lamp 1 at
-``(offset_x, offset_y, 0)``, lamp 2 mirrored at ``(-offset_x, offset_y, 0)``, weights ``1 - balance``
-and ``balance``; beam axes turned towards the optical axis by ``toe_in`` and pitched down by ``tilt``: an ROV's
-lamps are aimed at the work area in front of and below the camera, ``(-+sin(toe_in) cos(tilt), sin(tilt),
-cos(toe_in) cos(tilt))``, y down). ROVs carry more lamps than a pair: a top light on the frame above the camera
-and often one below it. With ``cross`` > 0 the rig is a cross: that share of the light comes from a top lamp at
-``(0, -cross_y, 0)`` and a bottom lamp at ``(0, cross_y, 0)`` (weights ``1 - cross_balance`` and
-``cross_balance`` of it), aimed at the pair's work area ``(0, offset_y + R0 tan(tilt), R0)``; the pair keeps
-``1 - cross`` of the light. Lamps all around the camera light a facing scene nearly as one lamp at its centre,
-which a pair alone can only imitate by sitting on the camera. Lamp ``l`` gives a surface point ``X`` with normal
-``n`` the relative irradiance::
+The base model (and the renderer's shading) assume light that does not depend on where a surface is. At depth the
+only light is the vehicle's: lamp ``l`` at ``L_l`` in the camera frame (lamp 1 at ``(offset_x, offset_y,
+offset_z)``, lamp 2 mirrored at ``(-offset_x, offset_y, offset_z)``, weights ``1 - balance`` and ``balance``; beam
+axes turned towards the optical axis by ``toe_in`` and pitched down by ``tilt``: an ROV's lamps are aimed at the
+work area in front of and below the camera, ``(-+sin(toe_in) cos(tilt), sin(tilt), cos(toe_in) cos(tilt))``, y
+down). ROVs carry more lamps than a pair: a top light on the frame above the camera and often one below it. With
+``cross`` > 0 the rig is a cross: that share of the light comes from a top lamp at ``(0, -cross_y, offset_z)`` and a
+bottom lamp at ``(0, cross_y, offset_z)`` (weights ``1 - cross_balance`` and ``cross_balance`` of it), aimed at the
+pair's work area ``(0, offset_y + R0 tan(tilt), R0)``; the pair keeps ``1 - cross`` of the light. The lamps sit on
+the vehicle's frame, which is rarely the camera's plane: on a toolskid ahead of the camera (``offset_z`` > 0) or on
+the top frame behind it (< 0). Over a dive's ranges that moves the inverse-square falloff: from lamps 0.2 m behind
+the camera a panel at 1.2 m gets 19 % less light, relative to one at 4 m, than from lamps in the camera's plane
+(``(r + 0.2)^-2`` against ``r^-2``), a change with range that no attenuation coefficient takes. Lamps all around the
+camera light a facing scene nearly as one lamp at its centre, which a pair alone can only imitate by sitting on the
+camera. Lamp ``l`` gives a surface point ``X`` with normal ``n`` the relative irradiance::
 
     E_c(X) = sum_l w_l P(theta_l) max(0, n . (L_l - X) / R_l) (R0 / R_l)^2 exp(-a_c (R_l - R0))
     P(theta) = exp(-ln 2 (theta / half_angle)^shape)              (beam profile, theta off the lamp axis)
@@ -366,20 +369,22 @@ class LampRig:
     """Lamp positions, axes, weights and beam of one parameter set (camera optical frame).
 
     Lamps 0 and 1 are the pair beside the camera; lamps 2 and 3 (when ``cross`` > 0) the top and the bottom lamp
-    of the cross, on the camera's vertical at ``(0, -+cross_y, 0)``, aimed at the pair's work area ``R0`` ahead."""
+    of the cross, on the camera's vertical at ``(0, -+cross_y, offset_z)``, aimed at the pair's work area ``R0``
+    ahead."""
 
     def __init__(self, values):
         ox, oy, toe, tilt = values["offset_x"], values["offset_y"], values["toe_in"], values["tilt"]
+        oz = values["offset_z"]
         sgn = 1.0 if ox >= 0 else -1.0
         st, ct = math.sin(toe), math.cos(toe)
         sp, cp = math.sin(tilt), math.cos(tilt)
         cross, cy, cb = values["cross"], values["cross_y"], values["cross_balance"]
-        self.pos = np.array([[ox, oy, 0.0], [-ox, oy, 0.0], [0.0, -cy, 0.0], [0.0, cy, 0.0]], np.float32)
+        self.pos = np.array([[ox, oy, oz], [-ox, oy, oz], [0.0, -cy, oz], [0.0, cy, oz]], np.float32)
         ax = [[-sgn * st * cp, sp, ct * cp], [sgn * st * cp, sp, ct * cp]]
         # the cross's lamps aim where the pair's tilt aims at R0 ahead: (0, oy + R0 tan(tilt), R0)
         aim_y = oy + R0 * math.tan(tilt)
         for y in (-cy, cy):
-            d = np.array([0.0, aim_y - y, R0])
+            d = np.array([0.0, aim_y - y, R0 - oz])
             ax.append(list(d / np.linalg.norm(d)))
         self.axis = np.array(ax, np.float32)
         wb = values["balance"]
@@ -396,8 +401,8 @@ class LampRig:
         # the lamps' colour against the light the renders assume (white): per-channel gain, green 1
         self.tint = np.array([values["tint_r"], 1.0, values["tint_b"]], np.float32)
         # what the shape of the light depends on (power, fill, veil and tint only scale it)
-        self.key = (float(ox), float(oy), float(toe), float(tilt), float(values["half_angle"]), float(values["shape"]),
-                    float(wb))
+        self.key = (float(ox), float(oy), float(oz), float(toe), float(tilt), float(values["half_angle"]),
+                    float(values["shape"]), float(wb))
         if cross > 0:
             self.key += (float(cross), float(cy), float(cb))
         # what the light on a point (:meth:`irradiance`) depends on
@@ -430,6 +435,7 @@ class ArtificialLight(Effect):
     params = (
         EffectParam("offset_x", 0.3, -1.5, 1.5, "m", "lamp 1 position right of the camera (lamp 2 at -offset_x)"),
         EffectParam("offset_y", -0.2, -1.0, 1.0, "m", "lamp height in the optical frame (y down: < 0 is above)"),
+        EffectParam("offset_z", 0.0, -0.4, 0.4, "m", "lamps ahead of (> 0) or behind (< 0) the camera's plane"),
         EffectParam("toe_in", 0.0, -0.5, 0.8, "rad", "beam axes turned towards the optical axis"),
         EffectParam("tilt", 0.0, -0.6, 0.6, "rad", "beam axes pitched down (y down: > 0 aims below the optical axis)"),
         EffectParam("half_angle", 0.6, 0.15, 1.4, "rad", "beam half width at half maximum"),
