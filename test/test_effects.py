@@ -383,9 +383,9 @@ def test_the_shadow_test_skips_only_points_it_would_find_lit(frames, renderer):
     """The shadow test first drops the points that no occluder can reach (a depth erosion over the lamp's parallax
     radius): with every point tested instead, the visibility is the same, on the panel near, tilted and far, for
     lamps beside, above, below, far to the side of, ahead of, behind and at the camera, on two block scenes, on the
-    panel above a seafloor and on a block standing on a seafloor. (A radius taken from the occluder's thickness, 0.3 m, instead
-    of the deepest sample, fails on the deeper block; one taken at the band's farthest depth instead of its
-    nearest fails too.) One grid serves every lamp, as the candidates of a fit share it: the points kept for
+    panel above a seafloor and on a block standing on a seafloor. (A radius taken from the occluder's thickness,
+    0.3 m, instead of the deepest sample, fails on the deeper block; one taken at the band's farthest depth instead
+    of its nearest fails too.) One grid serves every lamp, as the candidates of a fit share it: the points kept for
     testing depend on the lamp only through the radii and are kept per set of radii, so lamps mirrored or moved at
     the same distance reuse them."""
     from uw_sil.sim.effects.artificial_light import _shadow_grid, _visibility_on
