@@ -27,6 +27,8 @@ import itertools
 import numpy as np
 from scipy.optimize import least_squares
 
+from uw_sil.sim.effects.backscatter_coefficient import R0      # the plug-in's decay length
+
 LAM10 = np.arange(380, 701, 10)
 #: Pure water absorption (1/m), Pope & Fry (1997), 380-700 nm every 10 nm (rounded).
 A_WATER = np.array([0.0114, 0.00851, 0.00663, 0.00473, 0.00454, 0.00495, 0.00635, 0.00922, 0.00979, 0.0106, 0.0127,
@@ -34,7 +36,6 @@ A_WATER = np.array([0.0114, 0.00851, 0.00663, 0.00473, 0.00454, 0.00495, 0.00635
                     0.2644, 0.2755, 0.2916, 0.3108, 0.340, 0.410, 0.439, 0.465, 0.516, 0.624])
 LAM = np.arange(400, 701, 2.0)
 R = np.linspace(1.0, 5.0, 41)
-R0 = 2.0          # m, the plug-in's decay length (uw_sil.sim.effects.backscatter_coefficient.R0)
 
 
 def led(kind: str) -> np.ndarray:
